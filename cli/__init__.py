@@ -1,0 +1,1 @@
+"""The `zoo` command: parses arguments, calls the pipeline or the runtime, prints."""

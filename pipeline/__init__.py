@@ -1,0 +1,1 @@
+"""Offline stages that turn meshes into packaged models: one module per stage."""
