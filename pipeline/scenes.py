@@ -1,0 +1,239 @@
+"""Collision scenes: a TOML file names an SDF object, a mesh object, their poses and a method.
+
+```toml
+name = "mug-rack"
+method = "amortized"      # fw | pgd | voxel-fw | amortized
+margin = 0.001
+refine = 0                # FW steps warm-started from the method's answer
+
+[sdf]
+model = "mugs"            # a packaged model by name (zoo.load), with
+shape = "hoi4d_mug_0001"  # one of its shapes; or `fit = "new_mug.obj"` to fit_codes a mesh
+# analytic = "sphere", params = { radius = 0.05 }   # an analytic SDF instead of a model
+pose = { translation = [0, 0, 0], rotation_deg = [0, 0, 0] }   # xyz Euler angles, degrees
+
+[mesh]
+procedural = "rack"       # pipeline.parts: rack | holder | plane, with `params = {...}`
+# file = "rack/ndf_simple_rack.obj"   # or a mesh file: relative to the scene file, then $ZOO_DATA
+scale = 1.0               # e.g. 0.001 for a mesh in millimetres
+pose = { translation = [0, 0, 0] }
+```
+
+A scene loads only the model it names and builds a voxel grid only for ``voxel-fw``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import zoo
+from zoo.errors import DataError, InputError
+from zoo.files import atomic_path, atomic_write_text
+from zoo.meshes import load_mesh
+
+from .parts import make_part
+
+ANALYTIC = {"sphere": zoo.Sphere, "box": zoo.Box, "torus": zoo.Torus, "capsule": zoo.Capsule}
+
+
+@dataclass
+class Scene:
+    name: str
+    sdf: object
+    mesh: object  # trimesh.Trimesh
+    sdf_pose: np.ndarray
+    mesh_pose: np.ndarray
+    method: str = "fw"
+    margin: float = 1e-3
+    refine: int = 0
+    iters: int | None = None
+    sdf_label: str = ""
+    mesh_label: str = ""
+    timings: dict = field(default_factory=dict)
+
+
+def pose_matrix(spec: dict | list | None) -> np.ndarray:
+    """A 4x4 world-from-object transform from ``{translation, rotation_deg}`` or a 4x4 list."""
+    if spec is None:
+        return np.eye(4)
+    if isinstance(spec, list):
+        m = np.asarray(spec, dtype=np.float64)
+        if m.shape != (4, 4):
+            raise InputError(f"a pose given as a matrix must be 4x4, got shape {m.shape}")
+        return m
+    unknown = set(spec) - {"translation", "rotation_deg"}
+    if unknown:
+        raise InputError(f"unknown pose keys {sorted(unknown)}; use translation = [x, y, z] and rotation_deg = [rx, ry, rz]")
+    import trimesh
+
+    rx, ry, rz = np.radians(spec.get("rotation_deg", [0, 0, 0]))
+    m = trimesh.transformations.euler_matrix(rx, ry, rz, axes="sxyz")
+    m[:3, 3] = spec.get("translation", [0, 0, 0])
+    return m
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read a scene file and build its SDF and mesh (loading only the model it names)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"scene file {path} does not exist")
+    try:
+        spec = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
+    return scene_from_dict(spec, base_dir=path.parent)
+
+
+def scene_from_dict(spec: dict, base_dir: Path = Path(".")) -> Scene:
+    for key in ("sdf", "mesh"):
+        if key not in spec:
+            raise InputError(f"a scene needs a [{key}] table; see `zoo collide --help` for the format")
+    t0 = time.perf_counter()
+    sdf, sdf_label = _build_sdf(spec["sdf"], base_dir)
+    t1 = time.perf_counter()
+    mesh, mesh_label = _build_mesh(spec["mesh"], base_dir)
+    t2 = time.perf_counter()
+    return Scene(
+        name=spec.get("name", "scene"),
+        sdf=sdf,
+        mesh=mesh,
+        sdf_pose=pose_matrix(spec["sdf"].get("pose")),
+        mesh_pose=pose_matrix(spec["mesh"].get("pose")),
+        method=spec.get("method", "fw"),
+        margin=float(spec.get("margin", 1e-3)),
+        refine=int(spec.get("refine", 0)),
+        iters=spec.get("iters"),
+        sdf_label=sdf_label,
+        mesh_label=mesh_label,
+        timings={"load_sdf_s": t1 - t0, "load_mesh_s": t2 - t1},
+    )
+
+
+def _build_sdf(spec: dict, base_dir: Path):
+    if "analytic" in spec:
+        kind = spec["analytic"]
+        if kind not in ANALYTIC:
+            raise InputError(f"unknown analytic SDF {kind!r}; choose one of {sorted(ANALYTIC)}")
+        return ANALYTIC[kind](**spec.get("params", {})), kind
+    if "model" not in spec:
+        raise InputError("[sdf] needs `model` (with `shape` or `fit`) or `analytic`")
+    model = zoo.load(spec["model"])
+    if "fit" in spec:
+        mesh_path = _resolve_file(spec["fit"], base_dir)
+        return model.fit_codes(mesh_path), f"{model.name}@{model.version}:fit({mesh_path.name})"
+    shape = spec.get("shape", model.shapes[0])
+    return model.shape(shape), f"{model.name}@{model.version}:{shape}"
+
+
+def _build_mesh(spec: dict, base_dir: Path):
+    if "procedural" in spec:
+        mesh, label = make_part(spec["procedural"], **spec.get("params", {})), f"procedural:{spec['procedural']}"
+    elif "file" in spec:
+        path = _resolve_file(spec["file"], base_dir)
+        mesh, label = load_mesh(path), str(path.name)
+    else:
+        raise InputError("[mesh] needs `procedural` or `file`")
+    scale = float(spec.get("scale", 1.0))
+    if scale != 1.0:
+        mesh = mesh.copy()
+        mesh.apply_scale(scale)
+    return mesh, label
+
+
+def _resolve_file(name: str, base_dir: Path) -> Path:
+    """A path as given, else relative to the scene file, else relative to $ZOO_DATA."""
+    candidates = [Path(name), base_dir / name]
+    if os.environ.get("ZOO_DATA"):
+        candidates.append(Path(os.environ["ZOO_DATA"]) / name)
+    for c in candidates:
+        if c.is_file():
+            return c
+    raise DataError(f"mesh file {name!r} not found (looked in {', '.join(str(c) for c in candidates)}); set ZOO_DATA or fix the path")
+
+
+def run_scene(scene: Scene) -> zoo.Contacts:
+    """Collide the scene once; the time goes into ``scene.timings['collide_s']``."""
+    t0 = time.perf_counter()
+    contacts = zoo.collide(
+        scene.sdf, scene.mesh, sdf_pose=scene.sdf_pose, mesh_pose=scene.mesh_pose,
+        margin=scene.margin, method=scene.method, refine=scene.refine, iters=scene.iters,
+    )
+    scene.timings["collide_s"] = time.perf_counter() - t0
+    return contacts
+
+
+def contacts_summary(scene: Scene, contacts) -> dict:
+    """JSON-ready description of a scene's contacts."""
+    depths = contacts.depths.double()
+    return {
+        "scene": scene.name,
+        "sdf": scene.sdf_label,
+        "mesh": scene.mesh_label,
+        "method": scene.method,
+        "refine": scene.refine,
+        "margin": scene.margin,
+        "n_triangles": contacts.n_triangles,
+        "n_candidates": contacts.n_candidates,
+        "n_contacts": len(contacts),
+        "min_depth": float(depths.min()) if len(contacts) else None,
+        "timings_s": scene.timings,
+        "contacts": [
+            {"triangle": int(t), "point": p.tolist(), "depth": float(d), "normal": n.tolist()}
+            for t, p, d, n in zip(contacts.triangles, contacts.points.double(), depths, contacts.normals.double())
+        ],
+    }
+
+
+def write_outputs(scene: Scene, contacts, out_dir: str | os.PathLike) -> dict[str, Path]:
+    """Write ``<name>.json`` and ``<name>.png`` (contacts and normals over the mesh) into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path, png_path = out / f"{scene.name}.json", out / f"{scene.name}.png"
+    atomic_write_text(json_path, json.dumps(contacts_summary(scene, contacts), indent=1))
+    plot_contacts(scene, contacts, png_path)
+    return {"json": json_path, "png": png_path}
+
+
+def plot_contacts(scene: Scene, contacts, path: str | os.PathLike) -> None:
+    """Render the mesh triangles near the contacts, the contact points and their normals."""
+    from zoo.errors import require
+
+    require("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    verts = np.asarray(scene.mesh.vertices) @ scene.mesh_pose[:3, :3].T + scene.mesh_pose[:3, 3]
+    faces = np.asarray(scene.mesh.faces)
+    pts = contacts.points.double().numpy()
+    fig = plt.figure(figsize=(7, 6))
+    ax = fig.add_subplot(projection="3d")
+    if len(pts):
+        centre, radius = pts.mean(0), max(np.ptp(pts, axis=0).max(), 0.02)
+    else:
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in scene.sdf.bounds)
+        centre, radius = scene.sdf_pose[:3, :3] @ ((lo + hi) / 2) + scene.sdf_pose[:3, 3], float(np.max(hi - lo))
+    near = np.linalg.norm(verts[faces].mean(1) - centre, axis=1) < 1.5 * radius
+    shown = faces[near][:20000]
+    ax.add_collection3d(Poly3DCollection(verts[shown], facecolor=(0.7, 0.7, 0.75, 0.25), edgecolor=(0.3, 0.3, 0.3, 0.15), linewidth=0.2))
+    if len(pts):
+        d = contacts.depths.double().numpy()
+        sc = ax.scatter(*pts.T, c=d, cmap="coolwarm_r", s=8, depthshade=False)
+        n = contacts.normals.double().numpy() * radius * 0.15
+        ax.quiver(*pts.T, *n.T, color="k", linewidth=0.5, arrow_length_ratio=0.2)
+        fig.colorbar(sc, ax=ax, shrink=0.6, label="signed distance (m)")
+    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
+        setter(c - radius, c + radius)
+    ax.set_title(f"{scene.name}: {len(contacts)} contacts ({scene.method})")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
