@@ -36,3 +36,20 @@ def collide(
         f"min depth {summary['min_depth']}"
     )
     typer.echo(f"wrote {paths['json']} and {paths['png']}")
+
+
+@app.command()
+def stress(
+    out: str = typer.Option("out/stress.json", help="Where to write the JSON report."),
+    model: str = typer.Option(None, help="Also stress a packaged model's NeuralSDF and detector (NAME[@VERSION])."),
+    shape: str = typer.Option(None, help="The model's shape to use (default: its first)."),
+):
+    """Stiff and extreme cases and malformed input; each case says what was expected and what happened."""
+    from pipeline.stress import run_stress
+
+    report = run_stress(out, model=model, shape=shape)
+    for r in report["cases"]:
+        typer.echo(f"{'ok  ' if r['ok'] else 'FAIL'} {r['case']:<40} {r['seconds']:.2f}s")
+    typer.echo(f"{report['passed']} passed, {report['failed']} failed; wrote {out}")
+    if report["failed"]:
+        raise typer.Exit(1)
