@@ -1,0 +1,103 @@
+"""Scene files, procedural parts, the demo and the stress harness."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import zoo
+from pipeline import parts
+from pipeline.scenes import load_scene, pose_matrix, run_scene, scene_from_dict, write_outputs
+from pipeline.stress import CASES, run_stress
+from zoo.errors import DataError, InputError
+
+
+def sphere_on_plane(method="fw"):
+    return {
+        "name": "ball",
+        "method": method,
+        "margin": 0.002,
+        "sdf": {"analytic": "sphere", "params": {"radius": 0.05}, "pose": {"translation": [0.01, -0.02, 0.049]}},
+        "mesh": {"procedural": "plane", "params": {"size": 0.2, "max_edge": 0.01}},
+    }
+
+
+def exact_plane_contacts(mesh, centre, radius, margin):
+    """Independent: a flat triangle's distance to the ball is its closest point's distance minus r."""
+    hits = []
+    for i, tri in enumerate(np.asarray(mesh.vertices)[np.asarray(mesh.faces)]):
+        # the plane is z = 0 and the centre is above it: the closest point is the centre's
+        # projection clamped into the triangle; brute force over a fine barycentric grid
+        u = np.linspace(0, 1, 41)
+        a, b = np.meshgrid(u, u)
+        keep = a + b <= 1
+        bary = np.stack([a[keep], b[keep], 1 - a[keep] - b[keep]], 1)
+        d = np.linalg.norm(bary @ tri - centre, axis=1).min() - radius
+        if d <= margin:
+            hits.append(i)
+    return hits
+
+
+def test_scene_matches_independent_contacts():
+    scene = scene_from_dict(sphere_on_plane())
+    contacts = run_scene(scene)
+    expected = exact_plane_contacts(scene.mesh, np.array([0.01, -0.02, 0.049]), 0.05, 0.002)
+    assert sorted(contacts.triangles.tolist()) == expected
+    assert float(contacts.depths.min()) == pytest.approx(-0.001, abs=2e-4)  # the ball sinks 1 mm into the plane
+    assert bool((contacts.normals[:, 2] < -0.9).all())  # normals point from the ball down into the plane
+
+
+def test_scene_file_round_trip(tmp_path):
+    (tmp_path / "s.toml").write_text(
+        'name = "ball"\nmargin = 0.002\n[sdf]\nanalytic = "sphere"\nparams = { radius = 0.05 }\n'
+        'pose = { translation = [0.01, -0.02, 0.049] }\n[mesh]\nprocedural = "plane"\nparams = { size = 0.2, max_edge = 0.01 }\n'
+    )
+    scene = load_scene(tmp_path / "s.toml")
+    contacts = run_scene(scene)
+    paths = write_outputs(scene, contacts, tmp_path / "out")
+    report = json.loads(paths["json"].read_text())
+    assert report["n_contacts"] == len(contacts) > 0
+    assert paths["png"].stat().st_size > 1000
+
+
+def test_pose_matrix_is_rigid_and_matches_euler():
+    m = pose_matrix({"translation": [1, 2, 3], "rotation_deg": [0, 0, 90]})
+    assert np.allclose(m[:3, :3] @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(m[:3, 3], [1, 2, 3])
+    with pytest.raises(InputError):
+        pose_matrix({"translate": [0, 0, 0]})
+
+
+def test_bad_scenes_raise_typed_errors(tmp_path):
+    with pytest.raises(DataError):
+        load_scene(tmp_path / "missing.toml")
+    (tmp_path / "bad.toml").write_text("name = [")
+    with pytest.raises(DataError):
+        load_scene(tmp_path / "bad.toml")
+    with pytest.raises(InputError):
+        scene_from_dict({"sdf": {"analytic": "blob"}, "mesh": {"procedural": "plane"}})
+    with pytest.raises(InputError):
+        scene_from_dict({"sdf": {"analytic": "sphere"}, "mesh": {"procedural": "teapot"}})
+
+
+def test_procedural_parts_respect_max_edge():
+    for make in (parts.rack, parts.holder, parts.plane):
+        mesh = make(max_edge=0.02)
+        assert mesh.edges_unique_length.max() <= 0.02 + 1e-9
+        assert len(mesh.faces) > 0
+
+
+def test_stress_malformed_inputs_all_raise_typed_errors(tmp_path):
+    malformed = dict(CASES)["malformed input"]
+    expected, observed, ok = malformed({"sdf": zoo.Sphere(0.3)})
+    assert ok, observed
+
+
+def test_stress_report_is_written(tmp_path, monkeypatch):
+    import pipeline.stress as stress
+
+    monkeypatch.setattr(stress, "CASES", [c for c in stress.CASES if c[0] in ("zero gradient (medial axis)", "float32 against float64")])
+    report = run_stress(tmp_path / "s.json")
+    assert report["passed"] == 2 and report["failed"] == 0
+    assert json.loads((tmp_path / "s.json").read_text())["cases"][0]["expected"]
