@@ -1,0 +1,408 @@
+"""collide and its broad phase against independent references.
+
+The references are slow and obviously correct: the exact closest point of a triangle to a
+sphere's centre (projection onto the plane if it falls inside, else the best of the three
+edges), and a dense barycentric sampling for non-convex SDFs (a torus).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import zoo
+from zoo.collide import METHODS, candidate_triangles, clear_voxel_cache
+from zoo.errors import InputError
+from zoo.voxel import VoxelSDF
+
+# -- meshes and references ------------------------------------------------------------------
+
+
+def plane_grid(n=16, size=1.0):
+    """A flat square grid mesh in z = 0: (n+1)^2 vertices, 2 n^2 triangles, float64 and int64."""
+    x = np.linspace(-size / 2, size / 2, n + 1)
+    gx, gy = np.meshgrid(x, x, indexing="ij")
+    vertices = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], -1)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)])
+    return vertices, faces
+
+
+def subdivided_box(extents=(0.8, 0.8, 0.2), times=3):
+    mesh = trimesh.creation.box(extents=extents)
+    for _ in range(times):
+        mesh = mesh.subdivide()
+    return mesh
+
+
+def closest_points_on_segments(p, a, b):
+    """Closest points to p (3,) on segments a-b, a and b (M, 3) -> (M, 3)."""
+    ab = b - a
+    length2 = (ab * ab).sum(-1)
+    t = np.clip(((p - a) * ab).sum(-1) / np.where(length2 > 0, length2, 1), 0, 1)
+    return a + t[:, None] * ab
+
+
+def closest_points_on_triangles(p, tri):
+    """Exact closest points to p (3,) on triangles (M, 3, 3) -> (M, 3): the projection onto the
+    triangle's plane when it falls inside the triangle, else the nearest of the three edges."""
+    candidates = [closest_points_on_segments(p, tri[:, i], tri[:, (i + 1) % 3]) for i in range(3)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n2 = (n * n).sum(-1)
+    q = p - (((p - tri[:, 0]) * n).sum(-1) / np.where(n2 > 0, n2, 1))[:, None] * n
+    # inside when q is on the inner side of all three edges (never for a zero-area triangle)
+    sides = [(np.cross(tri[:, (i + 1) % 3] - tri[:, i], q - tri[:, i]) * n).sum(-1) for i in range(3)]
+    inside = (n2 > 0) & (np.min(sides, axis=0) >= 0)
+    candidates.append(np.where(inside[:, None], q, np.inf))
+    stacked = np.stack(candidates, 1)  # (M, 4, 3)
+    best = np.linalg.norm(stacked - p, axis=-1).argmin(1)
+    return stacked[np.arange(len(tri)), best]
+
+
+def sphere_reference(center, radius, triangles):
+    """Exact (min signed distance (M,), closest point (M, 3)) of a sphere over each triangle."""
+    c = np.asarray(center, dtype=np.float64)
+    points = closest_points_on_triangles(c, np.asarray(triangles, dtype=np.float64))
+    return np.linalg.norm(points - c, axis=1) - radius, points
+
+
+def sampled_minimum(sdf, triangles, n=40):
+    """Dense barycentric sampling: (M,) an upper bound on each triangle's minimum, tight to
+    within the sample spacing for a 1-Lipschitz SDF."""
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    bary = np.stack([i[keep], j[keep], n - i[keep] - j[keep]], -1) / n  # (G, 3)
+    tri = torch.as_tensor(np.asarray(triangles), dtype=torch.float64)
+    points = torch.einsum("gv,mvc->mgc", torch.as_tensor(bary), tri)
+    return sdf(points.reshape(-1, 3)).reshape(tri.shape[0], -1).amin(dim=1).numpy()
+
+
+def random_rigid(seed):
+    g = np.random.default_rng(seed)
+    q, r = np.linalg.qr(g.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = q, g.normal(size=3)
+    return pose
+
+
+def world_triangles(mesh):
+    vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+    return np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+
+
+class ExactSphereDetector(zoo.Sphere):
+    """A sphere with a ``detect`` that returns the exact closest point (a perfect amortized model)."""
+
+    def detect(self, triangles):
+        tri = triangles.double().numpy()
+        _, points = sphere_reference(self.center.numpy(), self.radius, tri)
+        # barycentrics of the closest points by least squares on [v1 v2 v3; 1 1 1]
+        a = np.concatenate([tri.transpose(0, 2, 1), np.ones((len(tri), 1, 3))], axis=1)
+        rhs = np.concatenate([points, np.ones((len(tri), 1))], axis=1)
+        bary = np.stack([np.linalg.lstsq(a[k], rhs[k], rcond=None)[0] for k in range(len(tri))])
+        bary = np.clip(bary, 0, None)
+        return torch.as_tensor(bary / bary.sum(1, keepdims=True), dtype=triangles.dtype)
+
+
+class Counting:
+    """Counts the points an SDF is evaluated at through ``__call__`` (where grids are built)."""
+
+    def __init__(self, sdf):
+        self.sdf, self.bounds, self.calls = sdf, sdf.bounds, 0
+
+    def __call__(self, points):
+        self.calls += points.shape[0]
+        return self.sdf(points)
+
+    def value_and_grad(self, points):
+        return self.sdf.value_and_grad(points)
+
+
+# -- broad phase ----------------------------------------------------------------------------
+
+
+def random_triangles(sdf, m, seed, size=(0.01, 0.15)):
+    """Triangles scattered over the SDF's bounds grown by 0.2, edges of varied length: (M, 3, 3)."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = (b.double() for b in sdf.bounds)
+    centres = lo - 0.2 + torch.rand(m, 3, generator=g, dtype=torch.float64) * (hi - lo + 0.4)
+    scale = size[0] + torch.rand(m, 1, 1, generator=g, dtype=torch.float64) * (size[1] - size[0])
+    return centres.unsqueeze(1) + scale * torch.randn(m, 3, 3, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("margin", [0.0, 1e-3, 0.02])
+def test_broad_phase_keeps_every_triangle_of_an_exact_sphere_reference(margin):
+    sphere = zoo.Sphere(0.25, center=(0.03, -0.02, 0.01))
+    tri = random_triangles(sphere, 3000, seed=1)
+    exact, _ = sphere_reference(sphere.center.numpy(), sphere.radius, tri.numpy())
+    kept = candidate_triangles(sphere, tri.float(), margin)
+    must_keep = np.flatnonzero(exact <= margin)
+    assert kept.dtype == torch.int64 and bool((kept[1:] > kept[:-1]).all())
+    assert set(must_keep) <= set(kept.tolist())
+    assert 0 < len(must_keep) and len(kept) < 0.6 * len(tri)  # it does cull
+
+
+def test_broad_phase_keeps_every_triangle_of_a_sampled_torus_reference():
+    torus = zoo.Torus(0.25, 0.08)
+    tri = random_triangles(torus, 1500, seed=2)
+    kept = set(candidate_triangles(torus, tri, 1e-3).tolist())
+    must_keep = np.flatnonzero(sampled_minimum(torus, tri) <= 1e-3)
+    assert len(must_keep) > 20 and set(must_keep) <= kept
+    assert len(kept) < 0.7 * len(tri)
+
+
+def test_broad_phase_keeps_the_tight_case_of_the_centroid_cull():
+    # A triangle whose nearest vertex is exactly at `margin` from a sphere and whose centroid
+    # lies straight behind that vertex: f(centroid) == bounding_radius + margin exactly.
+    g = torch.Generator().manual_seed(3)
+    m, r, margin = 500, 0.25, 1e-3
+    u = torch.nn.functional.normalize(torch.randn(m, 3, generator=g), dim=-1)
+    w = torch.nn.functional.normalize(torch.linalg.cross(u, torch.randn(m, 3, generator=g)), dim=-1)
+    radius = (0.01 + 0.2 * torch.rand(m, generator=g)).unsqueeze(-1)
+    c = (r + margin) * u + radius * u
+    tri = torch.stack([c - radius * u, c + radius * (0.5 * u + 0.75**0.5 * w), c + radius * (0.5 * u - 0.75**0.5 * w)], 1)
+    assert len(candidate_triangles(zoo.Sphere(r), tri, margin)) == m
+    # and just beyond the margin they are all culled: the cull is not merely keeping everything
+    assert len(candidate_triangles(zoo.Sphere(r), tri + 0.01 * u.unsqueeze(1), margin)) == 0
+
+
+def test_broad_phase_drops_triangles_outside_the_bounds_box():
+    box = zoo.Box((0.1, 0.1, 0.1))
+    far = torch.tensor([[[0.2, 0, 0], [0.3, 0, 0], [0.2, 0.1, 0]]])
+    assert len(candidate_triangles(box, far, 1e-3)) == 0
+    assert len(candidate_triangles(box, far, 0.1)) == 1  # margin grows the box
+
+
+# -- collide against analytic geometry ------------------------------------------------------
+
+SPHERE = dict(radius=0.2, center=(0.013, -0.021, 0.15))
+METHOD_SETTINGS = {  # method -> (kwargs, tolerance on depth above the exact minimum)
+    "fw": (dict(iters=100), 2e-5),
+    "amortized": (dict(), 1e-6),
+    "fw-refined": (dict(method="amortized", refine=5), 1e-6),
+}
+
+
+@pytest.mark.parametrize("name", list(METHOD_SETTINGS))
+def test_sphere_cutting_a_plane_gives_the_analytic_contacts(name):
+    kwargs, tol = METHOD_SETTINGS[name]
+    kwargs = {"method": name, **kwargs}
+    sphere = ExactSphereDetector(**SPHERE)
+    vertices, faces = plane_grid(16)
+    margin = 0.012
+    exact, closest = sphere_reference(SPHERE["center"], SPHERE["radius"], vertices[faces])
+    # no triangle's minimum lies within the solvers' tolerance of the margin, so the set is sharp
+    assert not np.any(np.abs(exact - margin) < 2e-3)
+    c = zoo.collide(sphere, (vertices, faces), margin=margin, **kwargs)
+
+    assert c.triangles.tolist() == np.flatnonzero(exact <= margin).tolist()
+    assert len(c) == len(c.triangles) > 30 and c.n_triangles == len(faces)
+    assert c.n_candidates >= len(c)
+    ref = exact[c.triangles.numpy()]
+    d = c.depths.numpy()
+    assert np.all(d >= ref - 1e-6) and np.all(d <= ref + tol)
+    # every point is on its triangle, at the depth reported, near the exact closest point
+    tri = vertices[faces][c.triangles.numpy()]
+    np.testing.assert_allclose(np.einsum("kv,kvc->kc", c.bary.numpy(), tri), c.points.numpy(), atol=1e-6)
+    assert np.all(c.bary.numpy() >= 0) and np.allclose(c.bary.numpy().sum(1), 1)
+    offset = c.points.numpy() - np.array(SPHERE["center"])
+    np.testing.assert_allclose(np.linalg.norm(offset, axis=1) - SPHERE["radius"], d, atol=1e-6)
+    np.testing.assert_allclose(c.normals.numpy(), offset / np.linalg.norm(offset, axis=1, keepdims=True), atol=1e-6)
+    # the position of the minimum is well defined for a sphere: error ~ sqrt(depth error * r)
+    assert np.abs(c.points.numpy() - closest[c.triangles.numpy()]).max() <= 3 * math.sqrt(tol * 0.2) + 1e-5
+
+
+def test_pgd_contacts_are_the_solvers_answers_and_never_below_the_minimum():
+    # PhysX's rule stops short of the minimum (its steps decay geometrically), so its depths are
+    # checked against the solver itself, and against the exact minimum only from below.
+    sphere = zoo.Sphere(**SPHERE)
+    vertices, faces = plane_grid(16)
+    exact, _ = sphere_reference(SPHERE["center"], SPHERE["radius"], vertices[faces])
+    c = zoo.collide(sphere, (vertices, faces), margin=0.012, method="pgd")
+    candidates = candidate_triangles(sphere, torch.as_tensor(vertices[faces]), 0.012)
+    tri = torch.as_tensor(vertices[faces])[candidates]
+    bary = zoo.solvers.projected_gradient(sphere, tri)
+    d = sphere(torch.einsum("mv,mvc->mc", bary, tri))
+    assert c.triangles.tolist() == candidates[d <= 0.012].tolist()
+    torch.testing.assert_close(c.depths, d[d <= 0.012])
+    assert set(c.triangles.tolist()) <= set(np.flatnonzero(exact <= 0.012).tolist())
+    assert np.all(c.depths.numpy() >= exact[c.triangles.numpy()] - 1e-9)
+
+
+def test_subdivided_box_against_a_sphere_matches_the_exact_reference():
+    mesh = subdivided_box()
+    center, radius = (0.1, -0.05, 0.2), 0.15  # dips 0.05 below the box's top face at z = 0.1
+    exact, _ = sphere_reference(center, radius, world_triangles(mesh))
+    c = zoo.collide(zoo.Sphere(radius, center), mesh, margin=1e-3, iters=100)
+    expected = np.flatnonzero(exact <= 1e-3)
+    assert len(expected) > 10 and c.triangles.tolist() == expected.tolist()
+    assert np.all(np.abs(c.depths.numpy() - exact[expected]) <= 2e-5)
+
+
+def test_subdivided_box_against_a_torus_matches_brute_force():
+    mesh = subdivided_box()
+    torus = zoo.Torus(0.25, 0.08, center=(0.0, 0.02, 0.05))  # its tube pokes through the top face
+    margin = 1e-3
+    upper = sampled_minimum(torus, world_triangles(mesh))  # >= true minimum
+    spacing = max(np.asarray(mesh.edges_unique_length)) / 40  # sample spacing bound
+    c = zoo.collide(torus, mesh, margin=margin, iters=100)
+    got = set(c.triangles.tolist())
+    surely_in = set(np.flatnonzero(upper <= margin - 1e-4).tolist())
+    possibly_in = set(np.flatnonzero(upper - spacing <= margin).tolist())
+    assert len(surely_in) > 10 and surely_in <= got <= possibly_in
+    ours = c.depths.numpy()
+    best = upper[c.triangles.numpy()]
+    # FW's point is on the triangle: never below the true minimum, and close to the sampled one
+    assert np.all(ours >= best - spacing) and np.all(ours <= best + 1e-4)
+    np.testing.assert_allclose(torus(c.points.double()).numpy(), ours, atol=1e-6)
+
+
+def test_rigid_motion_moves_the_contacts_with_the_scene():
+    mesh = subdivided_box(times=2)
+    torus = zoo.Torus(0.25, 0.08, center=(0.0, 0.02, 0.05))
+    sdf_pose, motion = random_rigid(1), random_rigid(3)
+    turn = np.eye(4)
+    turn[:2, :2] = [[math.cos(0.3), -math.sin(0.3)], [math.sin(0.3), math.cos(0.3)]]
+    mesh_pose = sdf_pose @ turn  # the box turned about the torus's axis, still cut by it
+    a = zoo.collide(torus, mesh, sdf_pose=sdf_pose, mesh_pose=mesh_pose, iters=30)
+    b = zoo.collide(torus, mesh, sdf_pose=motion @ sdf_pose, mesh_pose=motion @ mesh_pose, iters=30)
+    assert len(a) > 5 and a.triangles.tolist() == b.triangles.tolist()
+    np.testing.assert_allclose(b.depths.numpy(), a.depths.numpy(), atol=1e-9)
+    m = torch.as_tensor(motion)
+    np.testing.assert_allclose(b.points.numpy(), (a.points @ m[:3, :3].T + m[:3, 3]).numpy(), atol=1e-9)
+    np.testing.assert_allclose(b.normals.numpy(), (a.normals @ m[:3, :3].T).numpy(), atol=1e-9)
+    # and the relative pose is all that matters: the same as placing the mesh in the SDF's frame
+    local = zoo.collide(torus, mesh, mesh_pose=np.linalg.inv(sdf_pose) @ mesh_pose, iters=30)
+    assert local.triangles.tolist() == a.triangles.tolist()
+    np.testing.assert_allclose(local.depths.numpy(), a.depths.numpy(), atol=1e-9)
+
+
+def test_input_forms_and_dtypes():
+    vertices, faces = plane_grid(8)
+    sphere = zoo.Sphere(**SPHERE)
+    as_numpy = zoo.collide(sphere, (vertices, faces), sdf_pose=np.eye(4), mesh_pose=np.eye(4))
+    as_trimesh = zoo.collide(sphere, trimesh.Trimesh(vertices, faces, process=False))
+    as_float32 = zoo.collide(sphere, (torch.tensor(vertices, dtype=torch.float32), torch.tensor(faces)))
+    assert as_numpy.depths.dtype == as_trimesh.depths.dtype == torch.float64  # float64 is kept
+    assert as_float32.depths.dtype == as_float32.points.dtype == as_float32.normals.dtype == torch.float32
+    assert as_float32.triangles.dtype == torch.int64
+    assert as_numpy.triangles.tolist() == as_trimesh.triangles.tolist() == as_float32.triangles.tolist()
+    np.testing.assert_allclose(as_float32.depths.numpy(), as_numpy.depths.numpy(), atol=1e-5)
+    assert bool((as_numpy.depths <= 1e-3).all())
+
+
+def test_no_contact_gives_empty_contacts_of_the_right_shapes():
+    vertices, faces = plane_grid(4)
+    c = zoo.collide(zoo.Sphere(0.1, center=(0, 0, 0.5)), (vertices, faces))
+    assert len(c) == 0 and c.points.shape == (0, 3) and c.normals.shape == (0, 3) and c.bary.shape == (0, 3)
+    assert c.triangles.dtype == torch.int64 and c.n_triangles == len(faces) and c.n_candidates == 0
+
+
+def test_degenerate_faces_are_kept_and_answered_exactly():
+    vertices = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.05, 0.02, 0], [0.3, 0.3, 0.3]])
+    faces = np.array([[0, 1, 2], [3, 3, 3], [0, 0, 1], [4, 4, 4], [0, 1, 3]])  # collinear, point, segment, far point, fine
+    sphere = zoo.Sphere(0.1, center=(0.05, 0.0, 0.09))
+    exact, _ = sphere_reference(sphere.center.numpy(), 0.1, vertices[faces])
+    for method in ("fw", "pgd"):
+        c = zoo.collide(sphere, (vertices, faces), margin=0.0, method=method, iters=50)
+        assert c.triangles.tolist() == [0, 1, 2, 4]
+        assert bool(torch.isfinite(c.points).all() & torch.isfinite(c.normals).all())
+        d = c.depths.numpy()
+        assert np.all(d >= exact[[0, 1, 2, 4]] - 1e-9) and np.all(d <= exact[[0, 1, 2, 4]] + 1e-3)
+
+
+# -- methods --------------------------------------------------------------------------------
+
+
+def test_voxel_method_is_close_and_its_grid_is_built_once():
+    clear_voxel_cache()
+    vertices, faces = plane_grid(16)
+    sdf = Counting(zoo.Sphere(**SPHERE))
+    exact, _ = sphere_reference(SPHERE["center"], SPHERE["radius"], vertices[faces])
+    c = zoo.collide(sdf, (vertices, faces), method="voxel-fw", voxel_resolution=40, margin=0.01)
+    built = sdf.calls
+    assert built >= 40**3
+    again = zoo.collide(sdf, (vertices, faces), method="voxel-fw", voxel_resolution=40, margin=0.01)
+    assert sdf.calls - built < 1000  # the broad phase's centroids only, no new grid
+    assert again.triangles.tolist() == c.triangles.tolist()
+    cell = 0.44 / 39  # grid side (0.4 padded by 5% each way) / cells
+    np.testing.assert_allclose(c.depths.numpy(), exact[c.triangles.numpy()], atol=cell)
+    assert c.method == "voxel-fw"
+    # a VoxelSDF passed in is used as it is
+    grid = VoxelSDF(zoo.Sphere(**SPHERE), resolution=40)
+    direct = zoo.collide(grid, (vertices, faces), method="voxel-fw", margin=0.01)
+    np.testing.assert_allclose(direct.depths.numpy(), zoo.collide(grid, (vertices, faces), margin=0.01).depths.numpy())
+    clear_voxel_cache()
+
+
+def test_refine_never_makes_the_amortized_answer_worse():
+    class RoughDetector(zoo.Sphere):
+        def detect(self, triangles):  # always the centroid: a poor amortized model
+            return torch.full(triangles.shape[:2], 1 / 3, dtype=triangles.dtype)
+
+    vertices, faces = plane_grid(16)
+    sdf = RoughDetector(**SPHERE)
+    rough = zoo.collide(sdf, (vertices, faces), method="amortized", margin=0.05)
+    refined = zoo.collide(sdf, (vertices, faces), method="amortized", margin=0.05, refine=20)
+    assert set(rough.triangles.tolist()) <= set(refined.triangles.tolist())
+    common = torch.isin(refined.triangles, rough.triangles)
+    assert bool((refined.depths[common] <= rough.depths + 1e-6).all())
+    assert float((rough.depths - refined.depths[common]).max()) > 1e-3
+
+
+# -- bad input ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(sdf_pose=np.eye(3)), "4x4"),
+        (dict(mesh_pose=np.ones((4, 4))), "rotation"),
+        (dict(method="gjk"), "'fw', 'pgd', 'voxel-fw', 'amortized'"),
+        (dict(method="amortized"), r'method="amortized" needs a shape from a model with a detector: zoo\.load\(NAME\)\.shape'),
+        (dict(margin=-1.0), "margin"),
+        (dict(margin=float("nan")), "margin"),
+        (dict(iters=0), "iters"),
+        (dict(refine=-1), "refine"),
+        (dict(method="voxel-fw", voxel_resolution=1), "resolution"),
+    ],
+)
+def test_bad_arguments_are_input_errors(kwargs, match):
+    vertices, faces = plane_grid(2)
+    with pytest.raises(InputError, match=match):
+        zoo.collide(zoo.Sphere(**SPHERE), (vertices, faces), **kwargs)
+
+
+def test_bad_meshes_and_sdfs_are_input_errors():
+    vertices, faces = plane_grid(2)
+    sphere = zoo.Sphere(**SPHERE)
+    bad = vertices.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        zoo.collide(sphere, (bad, faces))
+    with pytest.raises(InputError, match="outside"):
+        zoo.collide(sphere, (vertices, faces + 100))
+    with pytest.raises(InputError, match="integer"):
+        zoo.collide(sphere, (vertices, faces.astype(float)))
+    with pytest.raises(InputError, match=r"\(F, 3\)"):
+        zoo.collide(sphere, (vertices, faces[:, :2]))
+    with pytest.raises(InputError, match="Trimesh"):
+        zoo.collide(sphere, "mesh.obj")
+    with pytest.raises(InputError, match="not an SDF"):
+        zoo.collide(object(), (vertices, faces))
+    with pytest.raises(InputError, match="not an SDF"):
+        candidate_triangles("sphere", torch.zeros(1, 3, 3))
+    with pytest.raises(InputError, match="resolution"):  # refused even with nothing near
+        zoo.collide(zoo.Sphere(0.1, center=(5, 5, 5)), (vertices, faces), method="voxel-fw", voxel_resolution=1)
+    with pytest.raises(InputError, match="iters has no meaning"):
+        zoo.collide(ExactSphereDetector(**SPHERE), (vertices, faces), method="amortized", iters=5)
+
+
+def test_methods_constant_lists_every_method():
+    assert set(METHODS) == {"fw", "pgd", "voxel-fw", "amortized"}

@@ -1,0 +1,337 @@
+"""SDF-mesh contacts: broad phase, per-triangle narrow phase, contact features.
+
+``collide(sdf, mesh)`` finds, for every mesh triangle that comes within ``margin`` of the SDF's
+surface, the point of the triangle with the smallest signed distance (problem (1) of the
+paper), and reports it as a contact:
+
+1. the mesh's vertices are moved into the SDF's frame (``inverse(sdf_pose) @ mesh_pose``);
+2. broad phase (:func:`candidate_triangles`): triangles whose bounding box misses the SDF's
+   bounds grown by ``margin`` are dropped, then PhysX's conservative cull drops those with
+   ``f(centroid) > bounding_radius + margin``; both are exact for a 1-Lipschitz SDF (no
+   triangle that reaches within ``margin`` is dropped);
+3. narrow phase: barycentric coordinates of the minimum by ``method``, then ``refine``
+   Frank-Wolfe steps warm-started from them;
+4. features ``p = bary . v``, ``d = f(p)``, ``n = grad f(p) / |grad f(p)|`` in the SDF's frame,
+   mapped to the world by ``sdf_pose``; rows with ``d <= margin`` are kept.
+
+Every method evaluates the contact points on the true SDF except ``"voxel-fw"``, which, like a
+simulator that only holds the voxel grid, solves and reports on the grid's interpolant. The
+broad phase always uses the given SDF, so every method sees the same candidate triangles.
+
+Degenerate faces (zero area: repeated or collinear vertices) are kept and treated like any
+other: their minimum lies on a segment or a point, which every solver handles.
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+
+import torch
+
+from .errors import InputError
+from .geometry import (
+    as_pose,
+    as_points,
+    as_triangles,
+    bary_to_points,
+    bounding_radius,
+    centroid,
+    invert_pose,
+    transform_points,
+    transform_vectors,
+)
+from .sdf import check_sdf
+
+METHODS = ("fw", "pgd", "voxel-fw", "amortized")
+DEFAULT_ITERS = {"fw": 10, "pgd": 32, "voxel-fw": 10}
+
+
+@dataclass
+class Contacts:
+    """One row per contact, in the world frame (the frame the poses map into).
+
+    Attributes:
+        points: (K, 3) the point of minimum signed distance on each contacting triangle.
+        depths: (K,) signed distance of that point to the SDF's surface (negative = penetration).
+        normals: (K, 3) unit outward normal of the SDF at the point (pointing from the SDF
+            towards the mesh when they touch); all zeros where the SDF's gradient vanishes.
+        triangles: (K,) int64, the index of each contact's triangle in the mesh's faces.
+        bary: (K, 3) barycentric coordinates of each point on its triangle.
+        n_triangles: number of faces in the mesh.
+        n_candidates: number of triangles that survived the broad phase.
+        method: the narrow-phase method that produced the contacts.
+    """
+
+    points: torch.Tensor
+    depths: torch.Tensor
+    normals: torch.Tensor
+    triangles: torch.Tensor
+    bary: torch.Tensor
+    n_triangles: int = 0
+    n_candidates: int = 0
+    method: str = "fw"
+
+    def __len__(self) -> int:
+        return int(self.depths.shape[0])
+
+    def __repr__(self):
+        return (
+            f"Contacts({len(self)} contacts from {self.n_candidates} candidates of "
+            f"{self.n_triangles} triangles, method={self.method!r})"
+        )
+
+
+# -- broad phase ----------------------------------------------------------------------------
+
+
+def candidate_triangles(sdf, triangles, margin: float = 1e-3) -> torch.Tensor:
+    """Indices of the triangles that may come within ``margin`` of the surface.
+
+    Args:
+        sdf: an SDF protocol object; triangles are in its frame.
+        triangles: (M, 3, 3).
+        margin: contact margin, >= 0.
+
+    Returns:
+        (C,) int64 indices into ``triangles``, ascending. A triangle is dropped only when that
+        is proven for a 1-Lipschitz SDF: its bounding box misses ``sdf.bounds`` grown by
+        ``margin`` (points outside the box are farther from the surface than from the box), or
+        ``f(centroid) > bounding_radius + margin`` (then ``f > margin`` all over it).
+    """
+    check_sdf(sdf)
+    triangles = as_triangles(triangles)
+    margin = _margin(margin)
+    near_box = _overlaps_bounds(sdf, triangles, margin).nonzero().squeeze(-1)
+    if near_box.numel() == 0:
+        return near_box
+    tri = triangles[near_box]
+    c = centroid(tri)
+    with torch.no_grad():
+        f_c = torch.as_tensor(sdf(c)).reshape(-1).to(tri)
+    reach = bounding_radius(tri) + margin
+    # f(c) is rounded to the dtype; keep triangles within a few ulps of the threshold so the
+    # cull never drops one that the exact arithmetic would keep.
+    slack = 16 * torch.finfo(tri.dtype).eps * (f_c.abs() + reach + c.abs().amax(dim=-1))
+    return near_box[f_c <= reach + slack]
+
+
+def _overlaps_bounds(sdf, triangles: torch.Tensor, margin: float) -> torch.Tensor:
+    """(M, 3, 3) -> (M,) bool: triangle's AABB touches the SDF's bounds grown by ``margin``."""
+    lo, hi = (torch.as_tensor(b).to(triangles).reshape(3) for b in sdf.bounds)
+    t_lo, t_hi = triangles.amin(dim=1), triangles.amax(dim=1)
+    return ((t_hi >= lo - margin) & (t_lo <= hi + margin)).all(dim=-1)
+
+
+# -- collide --------------------------------------------------------------------------------
+
+
+def collide(
+    sdf,
+    mesh,
+    sdf_pose=None,
+    mesh_pose=None,
+    margin: float = 1e-3,
+    method: str = "fw",
+    iters: int | None = None,
+    refine: int = 0,
+    voxel_resolution=256,
+) -> Contacts:
+    """Contacts between an SDF and a triangle mesh, one per triangle within ``margin``.
+
+    Args:
+        sdf: an SDF protocol object (``zoo.Sphere``, a NeuralSDF shape, a ``VoxelSDF``...).
+        mesh: a ``trimesh.Trimesh`` (or anything with ``.vertices`` and ``.faces``), or a
+            ``(vertices (V, 3), faces (F, 3) int)`` pair. Vertices' float64 is kept; other
+            dtypes become float32. The computation runs on the vertices' device.
+        sdf_pose, mesh_pose: 4x4 world-from-object rigid transforms (tensor or array); None is
+            the identity.
+        margin: contact margin (>= 0): triangles whose minimum signed distance is at most this
+            are reported.
+        method: narrow phase: "fw" (Frank-Wolfe, MuJoCo's rule), "pgd" (projected gradient,
+            PhysX's rule), "voxel-fw" (Frank-Wolfe on a ``VoxelSDF`` of ``sdf``, cached per
+            SDF object and resolution), "amortized" (``sdf.detect(triangles)``, one pass).
+        iters: solver iterations; default 10 for "fw" and "voxel-fw", 32 for "pgd"; not
+            accepted for "amortized" (use ``refine``).
+        refine: Frank-Wolfe steps warm-started from the method's answer (0: none).
+        voxel_resolution: samples per axis of the grid for "voxel-fw".
+
+    Returns:
+        :class:`Contacts`, rows ordered by triangle index.
+    """
+    check_sdf(sdf)
+    method = _method(method)
+    if method == "amortized" and not callable(getattr(sdf, "detect", None)):
+        raise InputError(
+            f'method="amortized" needs a shape from a model with a detector: zoo.load(NAME).shape(...); '
+            f"{type(sdf).__name__} has no detect(triangles)"
+        )
+    iters = _iters(method, iters)
+    if method == "voxel-fw":
+        from .voxel import resolution_per_axis
+
+        resolution_per_axis(voxel_resolution)  # refuse a bad resolution even when nothing is near
+    refine = _count(refine, "refine")
+    margin = _margin(margin)
+    vertices, faces = _mesh_arrays(mesh)
+    sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(vertices.device)
+    mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(vertices.device)
+
+    sdf_from_mesh = (invert_pose(sdf_pose) @ mesh_pose).to(vertices.dtype)
+    triangles = transform_points(sdf_from_mesh, vertices)[faces]  # (F, 3, 3) in the SDF's frame
+    candidates = candidate_triangles(sdf, triangles, margin)
+    if candidates.numel() == 0:
+        return _empty_contacts(triangles, faces.shape[0], method)
+    solve_sdf = _voxel_of(sdf, voxel_resolution) if method == "voxel-fw" else sdf
+    tri = triangles[candidates]
+    with torch.no_grad():
+        bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
+        if refine:
+            bary = _solvers().frank_wolfe(solve_sdf, tri, iters=refine, init=bary)
+        points = bary_to_points(tri, bary)
+        depths, grads = solve_sdf.value_and_grad(points)
+    depths, grads = depths.to(tri), grads.to(tri)
+    normals = torch.nn.functional.normalize(grads, dim=-1)
+    keep = depths <= margin
+    world = sdf_pose.to(tri.dtype)
+    return Contacts(
+        points=transform_points(world, points[keep]),
+        depths=depths[keep],
+        normals=transform_vectors(world, normals[keep]),
+        triangles=candidates[keep],
+        bary=bary[keep].to(tri),
+        n_triangles=int(faces.shape[0]),
+        n_candidates=int(candidates.numel()),
+        method=method,
+    )
+
+
+def _narrow_phase(solve_sdf, sdf, triangles: torch.Tensor, method: str, iters: int | None) -> torch.Tensor:
+    """Barycentrics (C, 3) of each candidate triangle's minimum by ``method``."""
+    if method == "amortized":
+        bary = torch.as_tensor(sdf.detect(triangles)).to(triangles)
+        if bary.shape != triangles.shape[:2] or not bool(torch.isfinite(bary).all()):
+            raise InputError(
+                f"{type(sdf).__name__}.detect returned {tuple(bary.shape)} (or non-finite values) for "
+                f"{triangles.shape[0]} triangles; it must return finite barycentrics (M, 3)"
+            )
+        return bary
+    solvers = _solvers()
+    if method == "pgd":
+        return solvers.projected_gradient(solve_sdf, triangles, iters=iters)
+    return solvers.frank_wolfe(solve_sdf, triangles, iters=iters)
+
+
+def _solvers():
+    from . import solvers  # imported late: collide only needs it once there are candidates
+
+    return solvers
+
+
+# -- the voxel cache ------------------------------------------------------------------------
+
+_VOXEL_CACHE_SIZE = 2  # grids at 256^3 are 64 MiB each; keep the working set small
+_voxel_cache: dict[tuple[int, tuple], tuple[object, object]] = {}
+
+
+def _voxel_of(sdf, resolution):
+    """The cached ``VoxelSDF`` of ``sdf`` at ``resolution``; built on first use.
+
+    Keyed by the SDF object's identity; the cache holds the SDF itself so its id cannot be
+    reused while the entry lives. An SDF changed in place (new codes, new parameters) needs
+    :func:`clear_voxel_cache`.
+    """
+    from .voxel import VoxelSDF, resolution_per_axis
+
+    if isinstance(sdf, VoxelSDF):
+        return sdf  # already a grid: solving on a grid of a grid would only blur it
+    key = (id(sdf), resolution_per_axis(resolution))
+    hit = _voxel_cache.pop(key, None)
+    if hit is None:
+        hit = (sdf, VoxelSDF(sdf, resolution=resolution))
+    _voxel_cache[key] = hit  # re-inserted last: the dict's order is the recency order
+    while len(_voxel_cache) > _VOXEL_CACHE_SIZE:
+        _voxel_cache.pop(next(iter(_voxel_cache)))
+    return hit[1]
+
+
+def clear_voxel_cache() -> None:
+    """Forget every cached voxel grid of ``collide(method="voxel-fw")``."""
+    _voxel_cache.clear()
+
+
+# -- input checks ---------------------------------------------------------------------------
+
+
+def _mesh_arrays(mesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validated vertices (V, 3) float and faces (F, 3) int64 from a mesh or a (V, F) pair."""
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        vertices, faces = mesh.vertices, mesh.faces
+    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        vertices, faces = mesh
+    else:
+        raise InputError(
+            f"mesh must be a trimesh.Trimesh or a (vertices (V, 3), faces (F, 3)) pair, got {type(mesh).__name__}"
+        )
+    vertices = as_points(vertices, "mesh vertices")
+    faces = _faces(faces, vertices.shape[0]).to(vertices.device)
+    return vertices, faces
+
+
+def _faces(faces, n_vertices: int) -> torch.Tensor:
+    try:
+        f = torch.as_tensor(faces)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"mesh faces must be an integer array (F, 3), got {type(faces).__name__}") from exc
+    if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
+        raise InputError(f"mesh faces must hold integer vertex indices, got dtype {f.dtype}")
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+        raise InputError(f"mesh faces must have shape (F, 3) with F >= 1, got {tuple(f.shape)}")
+    f = f.long()
+    if bool((f < 0).any() | (f >= n_vertices).any()):
+        raise InputError(f"mesh faces index vertices outside 0..{n_vertices - 1}; fix the faces array")
+    return f
+
+
+def _method(method) -> str:
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; use one of {', '.join(repr(m) for m in METHODS)}")
+    return method
+
+
+def _iters(method: str, iters) -> int | None:
+    if method == "amortized":
+        if iters is not None:
+            raise InputError('iters has no meaning for method="amortized" (one pass); use refine=N for Frank-Wolfe steps after it')
+        return None
+    return DEFAULT_ITERS[method] if iters is None else _count(iters, "iters", minimum=1)
+
+
+def _count(value, name: str, minimum: int = 0) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise InputError(f"{name} must be an int >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _margin(margin) -> float:
+    try:
+        m = float(margin)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"margin must be a number >= 0, got {margin!r}") from exc
+    if not (m >= 0 and m < float("inf")):
+        raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
+    return m
+
+
+def _empty_contacts(triangles: torch.Tensor, n_triangles: int, method: str) -> Contacts:
+    z = triangles.new_zeros
+    return Contacts(
+        points=z((0, 3)),
+        depths=z((0,)),
+        normals=z((0, 3)),
+        triangles=torch.zeros(0, dtype=torch.int64, device=triangles.device),
+        bary=z((0, 3)),
+        n_triangles=int(n_triangles),
+        n_candidates=0,
+        method=method,
+    )
