@@ -1,7 +1,80 @@
-"""`zoo` commands: bench."""
+"""`zoo` commands: bench.
+
+`zoo bench` runs one or more sections, each chosen by its flag (``--solvers``, ...); with no
+section flag it runs the solver section. A new section adds its flag to :func:`bench` and a
+runner to ``_SECTIONS``; the shared options travel in :class:`BenchOptions`.
+"""
 
 from __future__ import annotations
 
-import typer  # noqa: F401
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
 
-from .main import app  # noqa: F401
+import typer
+
+from .main import app
+
+DEFAULT_SECTION = "solvers"
+
+
+@dataclass
+class BenchOptions:
+    """Options every section may read."""
+
+    out: Path
+    triangles: int
+    seed: int
+    threads: int | None
+    progress: bool = True
+
+
+def _run_solvers(opts: BenchOptions) -> None:
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from pipeline.bench_solvers import TABLE_HEADER, format_table, run_solver_benchmark
+
+    path = run_solver_benchmark(
+        n_triangles=opts.triangles, out_dir=opts.out, seed=opts.seed, threads=opts.threads, progress=opts.progress
+    )
+    report = json.loads(path.read_text())
+    ref = report["reference"]
+    machine = report["machine"]
+    table = Table(
+        title=f"solvers on {report['config']['n_triangles']:,} triangles around {report['config']['sdf']} "
+        f"(torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})"
+    )
+    for column in TABLE_HEADER:
+        table.add_column(column, justify="right", no_wrap=True)
+    for row in format_table(report):
+        table.add_row(*row)
+    console = Console(width=max(Console().width, 150))  # a narrow terminal would crop the numbers
+    console.print(table)
+    loc = ref["location_fraction"]
+    console.print(
+        f"reference: {ref['time_per_triangle_ms']:.3g} ms/triangle; minimum at a vertex {loc['vertex']:.1%}, "
+        f"on an edge {loc['edge']:.1%}, inside the face {loc['face']:.1%}"
+    )
+    console.print(f"written: {path}")
+
+
+_SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers}
+
+
+@app.command()
+def bench(
+    solvers: bool = typer.Option(False, "--solvers", help="Frank-Wolfe, projected gradient and the reference: error against run time."),
+    triangles: int = typer.Option(100_000, "--triangles", min=1, help="Triangles sampled under the paper's conditions."),
+    out: Path = typer.Option(Path("out/bench"), "--out", help="Folder for the JSON results."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the triangle sampler."),
+    threads: int = typer.Option(0, "--threads", min=0, help="torch CPU threads; 0 keeps torch's default."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
+):
+    """Measure error against run time and write the results as JSON (solver section by default)."""
+    chosen = [name for name, on in {"solvers": solvers}.items() if on] or [DEFAULT_SECTION]
+    opts = BenchOptions(out=out, triangles=triangles, seed=seed, threads=threads or None, progress=not no_progress)
+    for name in chosen:
+        _SECTIONS[name](opts)

@@ -1,0 +1,263 @@
+"""Solver benchmark: error against run time of Frank-Wolfe, projected gradient and the reference.
+
+Triangles are drawn around an analytic SDF under the paper's four conditions
+(:mod:`pipeline.triangle_sampling`); every solver runs on them in batches, float32 as a simulator
+would; the reference runs once, in float64, and is the yardstick for NME. Timings are per
+triangle (and per iteration), the median over batches of ``batch`` triangles (at least
+``repeats`` timed runs). Results go to ``<out_dir>/solvers.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import time
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+import zoo
+from zoo import solvers
+from zoo.files import atomic_write_text
+
+from .triangle_sampling import sample_constrained_triangles
+
+FW_ITERS = (1, 2, 5, 10, 20, 50, 100)
+RESULT_NAME = "solvers.json"
+
+
+def run_solver_benchmark(
+    sdf=None,
+    n_triangles: int = 100_000,
+    out_dir: str | os.PathLike = "out/bench",
+    *,
+    fw_iters: tuple[int, ...] = FW_ITERS,
+    repeats: int = 3,
+    batch: int = 10_000,
+    seed: int = 0,
+    threads: int | None = None,
+    reference_resolution: int = 32,
+    reference_polish_iters: int = 100,
+    progress: bool = True,
+) -> Path:
+    """Measure the solvers on ``n_triangles`` sampled triangles and write ``<out_dir>/solvers.json``.
+
+    Args:
+        sdf: any SDF; default ``zoo.Torus()`` (non-convex, exact distances).
+        n_triangles: triangles sampled (the paper's dataset has 100k per object).
+        out_dir: folder for the JSON (created).
+        fw_iters: Frank-Wolfe iteration counts measured.
+        repeats: least number of timed runs behind each median (batches are the runs; a short
+            benchmark re-runs its first batch to reach this).
+        batch: triangles per solver call.
+        seed: seed of the triangle sampler.
+        threads: torch CPU threads (None keeps torch's setting; recorded either way).
+        reference_resolution, reference_polish_iters: of :func:`zoo.solvers.reference`.
+        progress: show rich progress bars.
+
+    Returns:
+        The path of the JSON written.
+    """
+    if threads:
+        torch.set_num_threads(int(threads))
+    sdf = zoo.Torus() if sdf is None else sdf
+    report = measure_solvers(
+        sdf, n_triangles, fw_iters=fw_iters, repeats=repeats, batch=batch, seed=seed,
+        reference_resolution=reference_resolution, reference_polish_iters=reference_polish_iters, progress=progress,
+    )
+    path = Path(out_dir) / RESULT_NAME
+    atomic_write_text(path, json.dumps(report, indent=2) + "\n")
+    return path
+
+
+def measure_solvers(
+    sdf, n_triangles: int, *, fw_iters=FW_ITERS, repeats: int = 3, batch: int = 10_000, seed: int = 0,
+    reference_resolution: int = 32, reference_polish_iters: int = 100, progress: bool = True,
+) -> dict:
+    """The benchmark's report as a dict (see :func:`run_solver_benchmark`)."""
+    with _progress(progress) as bar:
+        task = bar.add_task("sampling triangles", total=None) if bar else None
+        started = time.perf_counter()
+        tri = sample_constrained_triangles(sdf, n_triangles, seed=seed)
+        sampling_s = time.perf_counter() - started
+        if bar:
+            bar.update(task, total=1, completed=1)
+        tri64 = tri.double()
+        batches = list(torch.split(torch.arange(tri.shape[0]), batch))
+
+        def run_reference(t):
+            return solvers.reference(sdf, t.double(), resolution=reference_resolution, polish_iters=reference_polish_iters)
+
+        ref, ref_times, _ = _run_batched(run_reference, tri, batches, 1, bar, "reference (float64)")
+        location = solvers.minimum_location(ref)
+        off_vertex = location != solvers.VERTEX
+
+        configs: list[tuple[str, int | None, Callable]] = [
+            ("fw", k, (lambda t, k=k: (solvers.frank_wolfe(sdf, t, k), k))) for k in fw_iters
+        ]
+        configs.append(("pgd", None, lambda t: solvers.projected_gradient(sdf, t, return_iterations=True)))
+        _warm_up(sdf, tri[: min(64, tri.shape[0])])
+        rows = []
+        for name, iters, fn in configs:
+            label = f"{name}-{iters}" if iters is not None else f"{name} (PhysX rule)"
+            bary, times, iters_run = _run_batched(fn, tri, batches, repeats, bar, label)
+            rows.append(_solver_row(sdf, name, iters, tri64, bary.double(), ref, off_vertex, times, iters_run))
+
+    return {
+        "machine": machine_info(),
+        "config": {
+            "sdf": repr(sdf),
+            "n_triangles": int(tri.shape[0]),
+            "batch": batch,
+            "repeats": repeats,
+            "seed": seed,
+            "dtype_solvers": str(tri.dtype),
+            "dtype_reference": "torch.float64",
+            "reference": {"resolution": reference_resolution, "polish_iters": reference_polish_iters},
+            "sampling_seconds": sampling_s,
+        },
+        "reference": {
+            "time_per_triangle_ms": _median_ms(ref_times),
+            "location_fraction": {
+                "vertex": _fraction(location == solvers.VERTEX),
+                "edge": _fraction(location == solvers.EDGE),
+                "face": _fraction(location == solvers.FACE),
+            },
+            "optimality": _stats(solvers.optimality(sdf, tri64, ref)),
+            "min_sdf": _stats(_points_sdf(sdf, tri64, ref)),
+        },
+        "solvers": rows,
+    }
+
+
+def machine_info() -> dict:
+    """What the timings depend on: torch version and threads, CPU model and count, load."""
+    info = {
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
+    if hasattr(os, "getloadavg"):
+        info["load_average_1m"] = os.getloadavg()[0]
+    return info
+
+
+def format_table(report: dict) -> list[list[str]]:
+    """Rows (strings) for printing: solver, time/tri, time/tri/iter, optimality p50/p90/mean, NME p50/p90, NME off-vertex p50/p90."""
+    rows = []
+    for r in report["solvers"]:
+        name = f"{r['solver']}-{r['iters']}" if r["iters"] is not None else f"{r['solver']} ({r['iters_run']} it)"
+        rows.append(
+            [name, f"{r['time_per_triangle_ms']:.2e}", f"{r['time_per_triangle_iter_ms']:.2e}"]
+            + [f"{r['optimality'][q]:.2e}" for q in ("p50", "p90", "mean")]
+            + [f"{r['nme'][q]:.2e}" for q in ("p50", "p90")]
+            + [f"{r['nme_edge_or_face'][q]:.2e}" for q in ("p50", "p90")]
+        )
+    return rows
+
+
+TABLE_HEADER = ["solver", "ms/tri", "ms/tri/it", "opt p50", "opt p90", "opt mean", "NME p50", "NME p90", "NME e/f p50", "NME e/f p90"]
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _run_batched(fn, tri, batches, repeats, bar, label):
+    """Run ``fn`` (tri_batch -> bary or (bary, iterations)) over all batches, timing each.
+
+    Returns the concatenated bary (M, 3), a list of (seconds, triangles, iterations) per timed run
+    (all batches, plus re-runs of the first batch until ``repeats`` runs are timed), and the most
+    iterations any run used.
+    """
+    task = bar.add_task(label, total=len(batches) + max(0, repeats - len(batches))) if bar else None
+    outs, times = [], []
+    for idx in batches:
+        t = tri[idx]
+        bary, iters, seconds = _timed(fn, t)
+        outs.append(bary)
+        times.append((seconds, t.shape[0], iters))
+        if bar:
+            bar.advance(task)
+    for _ in range(repeats - len(batches)):
+        t = tri[batches[0]]
+        _, iters, seconds = _timed(fn, t)
+        times.append((seconds, t.shape[0], iters))
+        if bar:
+            bar.advance(task)
+    return torch.cat(outs), times, max(i for _, _, i in times)
+
+
+def _timed(fn, t):
+    start = time.perf_counter()
+    out = fn(t)
+    seconds = time.perf_counter() - start
+    bary, iters = out if isinstance(out, tuple) else (out, 1)
+    return bary, iters, seconds
+
+
+def _solver_row(sdf, name, iters, tri64, bary, ref, off_vertex, times, iters_run) -> dict:
+    err = solvers.nme(bary, ref, tri64)
+    return {
+        "solver": name,
+        "iters": iters,
+        "iters_run": iters_run,
+        "time_per_triangle_ms": _median_ms(times),
+        "time_per_triangle_iter_ms": statistics.median(1e3 * s / (n * max(i, 1)) for s, n, i in times),
+        "timing_repeats": len(times),
+        "optimality": _stats(solvers.optimality(sdf, tri64, bary)),
+        "nme": _stats(err),
+        "nme_edge_or_face": _stats(err[off_vertex]) if bool(off_vertex.any()) else {},
+        "min_sdf_excess_over_reference": _stats(_points_sdf(sdf, tri64, bary) - _points_sdf(sdf, tri64, ref)),
+    }
+
+
+def _points_sdf(sdf, tri, bary):
+    return torch.as_tensor(sdf(torch.einsum("mv,mvc->mc", bary, tri))).double()
+
+
+def _warm_up(sdf, tri):
+    """One small call of each solver so that first-call costs (allocations, dispatch) stay out of the timings."""
+    solvers.frank_wolfe(sdf, tri, 2)
+    solvers.projected_gradient(sdf, tri, iters=2)
+
+
+def _median_ms(times) -> float:
+    return statistics.median(1e3 * s / n for s, n, _ in times)
+
+
+def _stats(x: torch.Tensor) -> dict:
+    x = x.double().flatten()
+    if x.numel() == 0:
+        return {}
+    q = torch.quantile(x, torch.tensor([0.5, 0.9, 0.99], dtype=torch.float64)).tolist()
+    return {"p50": q[0], "p90": q[1], "p99": q[2], "mean": float(x.mean()), "min": float(x.min()), "max": float(x.max()), "count": int(x.numel())}
+
+
+def _fraction(mask: torch.Tensor) -> float:
+    return float(mask.double().mean())
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _progress(enabled: bool):
+    if not enabled:
+        return nullcontext(None)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
