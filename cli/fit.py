@@ -1,7 +1,58 @@
-"""`zoo` commands: fit."""
+"""`zoo` commands: fit-category, fit-codes."""
 
 from __future__ import annotations
 
-import typer  # noqa: F401
+import json
 
-from .main import app  # noqa: F401
+import typer
+
+from .main import app
+
+
+@app.command("fit-category")
+def fit_category(
+    category: str = typer.Argument(..., help="Category name (manifests/categories/NAME.toml), e.g. mugs."),
+    data: str = typer.Option(None, "--data", help="Folder with one sub-folder per category (default: $ZOO_DATA)."),
+    preset: str = typer.Option("quick", "--preset", help="quick (a minute, for tests/CI) or default (the shipped models)."),
+    out: str = typer.Option(None, "--out", help="The package directory to write (default: out/CATEGORY)."),
+    work: str = typer.Option(None, "--work", help="Folder for caches and checkpoints (default: runs/CATEGORY)."),
+    device: str = typer.Option("cpu", "--device", help="torch device for training: cpu, cuda, cuda:1, ..."),
+    threads: int = typer.Option(0, "--threads", help="torch CPU threads (0: torch's default)."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bars (off: plain log lines)."),
+):
+    """Fit a category NeuralSDF to its train meshes and write a package that zoo.load(OUT) opens.
+
+    Each stage is cached by the hashes of its inputs and config; a killed run resumes.
+    """
+    import torch
+
+    from pipeline.fit_category import fit_category as run_fit_category
+
+    if threads:
+        torch.set_num_threads(threads)
+    run = run_fit_category(category, data, preset, out, work, device=device, progress=progress,
+                           log=lambda line: typer.echo(line, err=True))
+    train = run.metrics.get("train", {})
+    typer.echo(f"{run.category.name}: {len(run.stems)} shapes -> {run.out_dir}")
+    if train:
+        typer.echo("train |SDF error| near the surface, % of size: "
+                   f"p50 {100 * train['near_p50']:.3f}  p90 {100 * train['near_p90']:.3f}; "
+                   f"sign agreement {100 * train['sign_agreement']:.2f}%")
+
+
+@app.command("fit-codes")
+def fit_codes(
+    model: str = typer.Argument(..., help="A model: NAME, NAME@X.Y.Z, a package directory or hf-hub:ORG/NAME@TAG."),
+    mesh: str = typer.Argument(..., help="The unseen mesh (.obj, .ply, .stl, .off)."),
+    out: str = typer.Option(None, "--out", help="Write the fitted code cloud here (safetensors)."),
+    iters: int = typer.Option(500, "--iters", help="Adam iterations on the code cloud (decoder frozen)."),
+    up: str = typer.Option("z", "--up", help="The mesh's up axis: x, y, z, -x, -y, -z."),
+    seed: int = typer.Option(0, "--seed"),
+    device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+):
+    """Fit an unseen mesh's code cloud with the model's decoder frozen; print its accuracy."""
+    from pipeline.fit_category import fit_codes as run_fit_codes
+
+    summary = run_fit_codes(model, mesh, out, iters=iters, up=up, seed=seed, device=device, progress=progress)
+    typer.echo(json.dumps(summary, indent=1))

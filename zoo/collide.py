@@ -6,13 +6,16 @@ paper), and reports it as a contact:
 
 1. the mesh's vertices are moved into the SDF's frame (``inverse(sdf_pose) @ mesh_pose``);
 2. broad phase (:func:`candidate_triangles`): triangles whose bounding box misses the SDF's
-   bounds grown by ``margin`` are dropped, then PhysX's conservative cull drops those with
+   bounds grown by ``margin`` are dropped (tested per vertex, without building all F
+   triangles), then PhysX's conservative cull drops those with
    ``f(centroid) > bounding_radius + margin``; both are exact for a 1-Lipschitz SDF (no
    triangle that reaches within ``margin`` is dropped);
 3. narrow phase: barycentric coordinates of the minimum by ``method``, then ``refine``
    Frank-Wolfe steps warm-started from them;
-4. features ``p = bary . v``, ``d = f(p)``, ``n = grad f(p) / |grad f(p)|`` in the SDF's frame,
-   mapped to the world by ``sdf_pose``; rows with ``d <= margin`` are kept.
+4. features ``p = bary . v`` and ``d = f(p)``; rows with ``d <= margin`` are kept, and only
+   those get ``n = grad f(p) / |grad f(p)|`` (one value pass over the candidates, one
+   value-and-gradient pass over the contacts); all in the SDF's frame, mapped to the world by
+   ``sdf_pose``.
 
 Every method evaluates the contact points on the true SDF except ``"voxel-fw"``, which, like a
 simulator that only holds the voxel grid, solves and reports on the grid's interpolant. The
@@ -105,15 +108,7 @@ def candidate_triangles(sdf, triangles, margin: float = 1e-3) -> torch.Tensor:
     near_box = _overlaps_bounds(sdf, triangles, margin).nonzero().squeeze(-1)
     if near_box.numel() == 0:
         return near_box
-    tri = triangles[near_box]
-    c = centroid(tri)
-    with torch.no_grad():
-        f_c = torch.as_tensor(sdf(c)).reshape(-1).to(tri)
-    reach = bounding_radius(tri) + margin
-    # f(c) is rounded to the dtype; keep triangles within a few ulps of the threshold so the
-    # cull never drops one that the exact arithmetic would keep.
-    slack = 16 * torch.finfo(tri.dtype).eps * (f_c.abs() + reach + c.abs().amax(dim=-1))
-    return near_box[f_c <= reach + slack]
+    return near_box[_survives_sdf_cull(sdf, triangles[near_box], margin)]
 
 
 def _overlaps_bounds(sdf, triangles: torch.Tensor, margin: float) -> torch.Tensor:
@@ -121,6 +116,46 @@ def _overlaps_bounds(sdf, triangles: torch.Tensor, margin: float) -> torch.Tenso
     lo, hi = (torch.as_tensor(b).to(triangles).reshape(3) for b in sdf.bounds)
     t_lo, t_hi = triangles.amin(dim=1), triangles.amax(dim=1)
     return ((t_hi >= lo - margin) & (t_lo <= hi + margin)).all(dim=-1)
+
+
+def _faces_near_bounds(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float) -> torch.Tensor:
+    """Indices (N,) of the faces whose AABB touches the SDF's bounds grown by ``margin``.
+
+    The same test as :func:`_overlaps_bounds` without building the (F, 3, 3) triangles: each
+    vertex (V, 3) gets six bits (below the grown box on x, y, z; above it on x, y, z), and a
+    face's box misses the grown box exactly when its three vertices share a bit.
+    """
+    lo, hi = (torch.as_tensor(b).to(vertices).reshape(3) for b in sdf.bounds)
+    weights = torch.tensor([1, 2, 4], dtype=torch.uint8, device=vertices.device)
+    below = ((vertices < lo - margin).to(torch.uint8) * weights).sum(dim=-1, dtype=torch.uint8)
+    above = ((vertices > hi + margin).to(torch.uint8) * weights).sum(dim=-1, dtype=torch.uint8)
+    code = below | (above << 3)  # (V,) uint8
+    per_face = code[faces]  # (F, 3)
+    shared = per_face[:, 0] & per_face[:, 1] & per_face[:, 2]
+    return (shared == 0).nonzero().squeeze(-1)
+
+
+def _survives_sdf_cull(sdf, tri: torch.Tensor, margin: float) -> torch.Tensor:
+    """(N, 3, 3) triangles in the SDF's frame -> (N,) bool: may come within ``margin``.
+
+    PhysX's conservative cull: f(centroid) > bounding_radius + margin proves that no point of
+    the triangle comes within ``margin`` of the surface of a 1-Lipschitz SDF.
+    """
+    return _ball_may_touch(sdf, tri, margin)
+
+
+def _ball_may_touch(sdf, tri: torch.Tensor, margin: float) -> torch.Tensor:
+    """(N, 3, 3) -> (N,) bool: f(centroid) <= bounding_radius + margin, up to rounding."""
+    if tri.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.bool, device=tri.device)
+    c = centroid(tri)
+    with torch.no_grad():
+        f_c = torch.as_tensor(sdf(c)).reshape(-1).to(tri)
+    reach = bounding_radius(tri) + margin
+    # f(c) is rounded to the dtype; keep triangles within a few ulps of the threshold so the
+    # cull never drops one that the exact arithmetic would keep.
+    slack = 16 * torch.finfo(tri.dtype).eps * (f_c.abs() + reach + c.abs().amax(dim=-1))
+    return f_c <= reach + slack
 
 
 # -- collide --------------------------------------------------------------------------------
@@ -178,32 +213,43 @@ def collide(
     mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(vertices.device)
 
     sdf_from_mesh = (invert_pose(sdf_pose) @ mesh_pose).to(vertices.dtype)
-    triangles = transform_points(sdf_from_mesh, vertices)[faces]  # (F, 3, 3) in the SDF's frame
-    candidates = candidate_triangles(sdf, triangles, margin)
+    local = transform_points(sdf_from_mesh, vertices)  # (V, 3) in the SDF's frame
+    # The broad phase as candidate_triangles, without building or re-validating all F triangles.
+    candidates = _faces_near_bounds(sdf, local, faces, margin)
+    tri = local[faces[candidates]]  # (N, 3, 3)
+    if candidates.numel():
+        survives = _survives_sdf_cull(sdf, tri, margin)
+        candidates, tri = candidates[survives], tri[survives]
     if candidates.numel() == 0:
-        return _empty_contacts(triangles, faces.shape[0], method)
+        return _empty_contacts(local, faces.shape[0], method)
     solve_sdf = _voxel_of(sdf, voxel_resolution) if method == "voxel-fw" else sdf
-    tri = triangles[candidates]
     with torch.no_grad():
         bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
         if refine:
             bary = _solvers().frank_wolfe(solve_sdf, tri, iters=refine, init=bary)
         points = bary_to_points(tri, bary)
-        depths, grads = solve_sdf.value_and_grad(points)
-    depths, grads = depths.to(tri), grads.to(tri)
-    normals = torch.nn.functional.normalize(grads, dim=-1)
+        depths = torch.as_tensor(solve_sdf(points)).reshape(-1).to(tri)
     keep = depths <= margin
+    normals = _contact_normals(solve_sdf, points[keep])  # gradients only where there is a contact
     world = sdf_pose.to(tri.dtype)
     return Contacts(
         points=transform_points(world, points[keep]),
         depths=depths[keep],
-        normals=transform_vectors(world, normals[keep]),
+        normals=transform_vectors(world, normals),
         triangles=candidates[keep],
         bary=bary[keep].to(tri),
         n_triangles=int(faces.shape[0]),
         n_candidates=int(candidates.numel()),
         method=method,
     )
+
+
+def _contact_normals(sdf, points: torch.Tensor) -> torch.Tensor:
+    """Unit gradients (K, 3) of ``sdf`` at the contact points (K, 3); zeros where the gradient vanishes."""
+    if points.shape[0] == 0:
+        return points.new_zeros((0, 3))
+    _, grads = sdf.value_and_grad(points)
+    return torch.nn.functional.normalize(torch.as_tensor(grads).to(points), dim=-1)
 
 
 def _narrow_phase(solve_sdf, sdf, triangles: torch.Tensor, method: str, iters: int | None) -> torch.Tensor:
@@ -288,7 +334,8 @@ def _faces(faces, n_vertices: int) -> torch.Tensor:
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
         raise InputError(f"mesh faces must have shape (F, 3) with F >= 1, got {tuple(f.shape)}")
     f = f.long()
-    if bool((f < 0).any() | (f >= n_vertices).any()):
+    low, high = torch.aminmax(f)  # one pass over the faces instead of two comparisons and two reductions
+    if int(low) < 0 or int(high) >= n_vertices:
         raise InputError(f"mesh faces index vertices outside 0..{n_vertices - 1}; fix the faces array")
     return f
 

@@ -1,0 +1,468 @@
+"""Error against run time of the amortized detector and its baselines (issue 4 item 4).
+
+Methods, each on the same triangles, timed in the same run:
+
+* ``amortized``: one forward pass of the detector (features at the vertices + network);
+* ``amortized+fw{k}``: k Frank-Wolfe steps warm-started from the amortized answer;
+* ``fw{k}``: NeuralSDF + Frank-Wolfe from the centroid (MuJoCo's rule), k iterations;
+* ``pgd``: projected gradient (PhysX's rule);
+* ``voxel{r}+fw{k}``: the NeuralSDF sampled on an r^3 grid (zoo.VoxelSDF), then Frank-Wolfe
+  on the grid; its answer is judged on the NeuralSDF.
+
+Metrics per method (all scale-free, computed in the normalised frame, where every shape is
+compared on the same footing): optimality (equation (12), p50 / p90 / mean), NME against the
+global reference (``zoo.solvers.reference``: p50 / p90 / mean, and the mean on the subset whose
+reference minimum lies on an edge or inside the face), and time per triangle (median over
+``repeats`` of a batch of ``timing_batch`` triangles).
+
+Tables: Table I analog (FW iterations and time needed to reach the amortized model's mean
+optimality, and the speed-up), Table III (seen vs unseen shapes), Table IV (ablation variants).
+Results are written as ``bench_detector.json`` and a Pareto plot ``bench_detector.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from zoo.detector import detect
+from zoo.errors import InputError
+from zoo.files import atomic_path, atomic_write_text
+from zoo.geometry import bary_to_points
+
+JSON_NAME = "bench_detector.json"
+PNG_NAME = "bench_detector.png"
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    n_per_shape: int = 500  # metric triangles per shape (each gets the global reference)
+    seed: int = 20261122  # differs from the training data's seeds: an independent draw
+    fw_iters: tuple[int, ...] = (1, 2, 3, 5, 8, 11, 15, 20, 30, 50, 100)
+    refine_iters: tuple[int, ...] = (1, 2, 5)
+    voxel_resolutions: tuple[int, ...] = (64, 128, 256)
+    voxel_fw_iters: int = 50  # the paper's VoxelSDF+FW iteration limit
+    voxel_shapes: int = 1  # grids are built for this many seen shapes (256^3 NeuralSDF queries each)
+    timing_batch: int = 10_000
+    repeats: int = 3
+    max_timed_fw_iters: int = 30  # longer FW runs are timed as (per-iteration time x k), marked so
+    reference_resolution: int = 32
+    threads: int | None = None
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+QUICK = BenchConfig(n_per_shape=100, fw_iters=(1, 2, 5, 11, 20), refine_iters=(1, 2), voxel_resolutions=(32,),
+                    timing_batch=2000, repeats=2, max_timed_fw_iters=20, reference_resolution=16)
+
+
+# --------------------------------------------------------------------------- triangles
+
+
+def bench_triangles(shapes, config: BenchConfig, sampler=None) -> list[torch.Tensor]:
+    """Per shape, ``n_per_shape`` fresh triangles (normalised frame) under the paper's four conditions."""
+    if sampler is None:
+        from pipeline.triangle_sampling import sample_constrained_triangles as sampler
+    from pipeline.triangles import shape_seed
+
+    return [torch.as_tensor(sampler(s.normalised, config.n_per_shape, seed=shape_seed(config.seed, i), batch=16384)).float()
+            for i, s in enumerate(shapes)]
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def quality(sdf, triangles: torch.Tensor, bary: torch.Tensor, ref_bary: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-triangle optimality (M,), NME (M,) and whether the reference minimum is off the vertices (M,) bool."""
+    from zoo.solvers import EDGE, minimum_location, nme, optimality
+
+    return {
+        "optimality": optimality(sdf, triangles, bary).float(),
+        "nme": nme(bary.double(), ref_bary.double(), triangles.double()).float(),
+        "off_vertex": minimum_location(ref_bary) >= EDGE,
+    }
+
+
+def summarise(per_triangle: dict[str, torch.Tensor]) -> dict:
+    o, e, off = per_triangle["optimality"], per_triangle["nme"], per_triangle["off_vertex"]
+    return {
+        "optimality_p50": float(o.median()), "optimality_p90": float(o.quantile(0.9)), "optimality_mean": float(o.mean()),
+        "nme_p50": float(e.median()), "nme_p90": float(e.quantile(0.9)), "nme_mean": float(e.mean()),
+        "nme_mean_edge_or_face": float(e[off].mean()) if bool(off.any()) else None,
+        "fraction_edge_or_face": float(off.float().mean()),
+        "n": int(o.numel()),
+    }
+
+
+def _concat(parts: list[dict]) -> dict:
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
+# --------------------------------------------------------------------------- timing
+
+
+def median_seconds(fn, repeats: int) -> float:
+    """Median wall time of ``fn()`` over ``repeats`` runs, after one untimed warm-up."""
+    fn()
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def timing_batch(triangles: torch.Tensor, n: int) -> torch.Tensor:
+    """``n`` triangles (n, 3, 3), the given ones repeated as needed."""
+    reps = -(-n // triangles.shape[0])
+    return triangles.repeat(reps, 1, 1)[:n]
+
+
+# --------------------------------------------------------------------------- the methods
+
+
+class NormalisedView:
+    """A fitted shape seen from its normalised frame: what detect() needs, with the identity similarity."""
+
+    similarity = None
+
+    def __init__(self, shape):
+        self.normalised = shape.normalised
+        self.features = shape.features
+
+
+def method_table(detector, config: BenchConfig) -> dict:
+    """{name: solve(view, sdf, triangles) -> bary}: ``view`` a NormalisedView, ``sdf`` the normalised SDF."""
+    from zoo.solvers import frank_wolfe, projected_gradient
+
+    methods = {}
+    if detector is not None:
+        methods["amortized"] = lambda shape, sdf, tri: detect(detector, shape, tri)
+        for k in config.refine_iters:
+            methods[f"amortized+fw{k}"] = (lambda k: lambda shape, sdf, tri: frank_wolfe(sdf, tri, iters=k, init=detect(detector, shape, tri)))(k)
+    for k in config.fw_iters:
+        methods[f"fw{k}"] = (lambda k: lambda shape, sdf, tri: frank_wolfe(sdf, tri, iters=k))(k)
+    methods["pgd"] = lambda shape, sdf, tri: projected_gradient(sdf, tri)
+    return methods
+
+
+def run_split(detector, shapes, triangles, config: BenchConfig, voxels: dict | None = None, progress=None) -> dict:
+    """Quality of every method on one split (shapes with their bench triangles): {method: summary}."""
+    from zoo.solvers import frank_wolfe, reference
+
+    methods = method_table(detector, config)
+    per_method: dict[str, list] = {m: [] for m in methods}
+    for i, (shape, tri) in enumerate(zip(shapes, triangles)):
+        view = NormalisedView(shape)
+        shape_n = view.normalised
+        ref = reference(shape_n, tri.double(), resolution=config.reference_resolution).float()
+        for name, solve in methods.items():
+            per_method[name].append(quality(shape_n, tri, solve(view, shape_n, tri), ref))
+            if progress:
+                progress()
+        for r, grids in (voxels or {}).items():
+            if i >= len(grids):
+                continue
+            bary = frank_wolfe(grids[i], tri, iters=config.voxel_fw_iters)
+            per_method.setdefault(f"voxel{r}+fw{config.voxel_fw_iters}", []).append(quality(shape_n, tri, bary, ref))
+    return {name: summarise(_concat(parts)) for name, parts in per_method.items()}
+
+
+def run_timings(detector, shape, triangles: torch.Tensor, config: BenchConfig, voxel_grids: dict | None = None) -> dict:
+    """Seconds per triangle of each method on one batch of ``timing_batch`` triangles of one shape."""
+    from zoo.solvers import frank_wolfe
+
+    view = NormalisedView(shape)
+    shape_n = view.normalised
+    batch = timing_batch(triangles, config.timing_batch)
+    out = {}
+    with torch.no_grad():
+        for name, solve in method_table(detector, config).items():
+            k = int(name[2:]) if name.startswith("fw") else None
+            if k is not None and k > config.max_timed_fw_iters:
+                continue
+            out[name] = {"seconds_per_triangle": median_seconds(lambda: solve(view, shape_n, batch), config.repeats) / len(batch),
+                         "measured": True}
+        per_iter = _fw_seconds_per_iteration(out)
+        for k in config.fw_iters:
+            if k > config.max_timed_fw_iters:
+                out[f"fw{k}"] = {"seconds_per_triangle": per_iter * k, "measured": False}
+        for r, grid in (voxel_grids or {}).items():
+            name = f"voxel{r}+fw{config.voxel_fw_iters}"
+            secs = median_seconds(lambda: frank_wolfe(grid, batch, iters=config.voxel_fw_iters), config.repeats)
+            out[name] = {"seconds_per_triangle": secs / len(batch), "measured": True, "memory_bytes": int(grid.memory_bytes)}
+    return out
+
+
+def _fw_seconds_per_iteration(timings: dict) -> float:
+    """Slope of measured FW time per triangle against iterations (least squares through the measured points)."""
+    pts = [(int(n[2:]), t["seconds_per_triangle"]) for n, t in timings.items() if n.startswith("fw") and t["measured"]]
+    if not pts:
+        return float("nan")
+    ks = torch.tensor([p[0] for p in pts], dtype=torch.float64)
+    ts = torch.tensor([p[1] for p in pts], dtype=torch.float64)
+    if len(pts) == 1:
+        return float(ts[0] / ks[0])
+    a = torch.stack([ks, torch.ones_like(ks)], -1)
+    slope = torch.linalg.lstsq(a, ts.unsqueeze(-1)).solution[0, 0]
+    return float(slope)
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def table_one(split: dict, timings: dict, fw_limit: int = 50) -> dict:
+    """FW iterations and time to reach the amortized model's mean optimality, and the speed-up."""
+    if "amortized" not in split:
+        return {}
+    target = split["amortized"]["optimality_mean"]
+    fw = sorted((int(n[2:]), s) for n, s in split.items() if n.startswith("fw"))
+    reached = [(k, s) for k, s in fw if s["optimality_mean"] <= target]
+    if reached:
+        k, _ = reached[0]
+        note = "first FW iteration count whose mean optimality is at most the amortized one"
+    else:
+        k = max((kk for kk, _ in fw if kk <= fw_limit), default=fw[-1][0])
+        note = f"FW did not reach it within the measured iterations; FW-{k}'s time is the comparison"
+    t_amortized = timings["amortized"]["seconds_per_triangle"]
+    t_fw = timings[f"fw{k}"]["seconds_per_triangle"]
+    return {
+        "amortized_optimality_mean": target,
+        "amortized_ms_per_triangle": 1e3 * t_amortized,
+        "fw_iterations": k,
+        "fw_reached": bool(reached),
+        "fw_ms_per_triangle": 1e3 * t_fw,
+        "speedup": t_fw / t_amortized,
+        "note": note,
+    }
+
+
+def ablation_table(variants: dict, shapes, triangles, config: BenchConfig) -> dict:
+    """Table IV: {variant: optimality and NME summary} for detectors trained without a component."""
+    from zoo.solvers import reference
+
+    refs = [reference(s.normalised, t.double(), resolution=config.reference_resolution).float() for s, t in zip(shapes, triangles)]
+    out = {}
+    for name, det in variants.items():
+        parts = [quality(s.normalised, t, detect(det, NormalisedView(s), t), r) for s, t, r in zip(shapes, triangles, refs)]
+        out[name] = summarise(_concat(parts))
+    return out
+
+
+# --------------------------------------------------------------------------- the whole benchmark
+
+
+def run_detector_benchmark(detector, seen_shapes, unseen_shapes=(), out_dir="bench-results", config: BenchConfig = BenchConfig(),
+                           ablations: dict | None = None, label: str = "", progress: bool = True, log=print) -> Path:
+    """Measure every method on seen (and unseen) shapes; write JSON and the Pareto PNG; return the JSON path.
+
+    ``seen_shapes`` / ``unseen_shapes``: lists of fitted shapes (NeuralShape or anything with
+    ``normalised`` and ``features``); ``detector``: an AmortizedDetector (or None for baselines
+    only); ``ablations``: optional {variant name: AmortizedDetector} for Table IV.
+    """
+    if not seen_shapes:
+        raise InputError("no shapes to benchmark; pass the model's fitted train shapes (model.shape(stem))")
+    if config.threads:
+        torch.set_num_threads(int(config.threads))
+    t_start = time.perf_counter()
+    seen_tri = bench_triangles(seen_shapes, config)
+    unseen_tri = bench_triangles(list(unseen_shapes), config) if unseen_shapes else []
+    log(f"bench triangles: {sum(len(t) for t in seen_tri)} seen, {sum(len(t) for t in unseen_tri)} unseen")
+    voxels = build_voxels(seen_shapes, config)
+    splits = {"seen": run_split(detector, seen_shapes, seen_tri, config, voxels)}
+    log("seen split done")
+    if unseen_shapes:
+        splits["unseen"] = run_split(detector, list(unseen_shapes), unseen_tri, config)
+        log("unseen split done")
+    first = {r: grids[0] for r, grids in voxels.items()}
+    timings = run_timings(detector, seen_shapes[0], seen_tri[0], config, first)
+    log("timings done")
+    report = {
+        "label": label,
+        "config": config.to_dict(),
+        "machine": machine_info(),
+        "splits": splits,
+        "timings": timings,
+        "table_1": {name: table_one(split, timings) for name, split in splits.items()},
+        "table_3": {name: {k: split["amortized"][k] for k in ("optimality_mean", "nme_mean")} for name, split in splits.items()
+                    if "amortized" in split},
+        "table_4": ablation_table(ablations, seen_shapes, seen_tri, config) if ablations else {},
+        "detector": detector.config() if detector is not None else None,
+        "seconds": None,
+    }
+    report["seconds"] = time.perf_counter() - t_start
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / JSON_NAME, json.dumps(report, indent=1) + "\n")
+    pareto_plot(report, out / PNG_NAME)
+    return out / JSON_NAME
+
+
+def build_voxels(shapes, config: BenchConfig) -> dict:
+    """{resolution: [VoxelSDF of each shape's normalised SDF]} (built once; build time is not timed)."""
+    if not config.voxel_resolutions:
+        return {}
+    from zoo.voxel import VoxelSDF
+
+    box = (torch.full((3,), -0.5), torch.full((3,), 0.5))
+    return {r: [VoxelSDF(s.normalised, resolution=r, bounds=box, padding=0.2) for s in shapes[: config.voxel_shapes]]
+            for r in config.voxel_resolutions}
+
+
+def machine_info() -> dict:
+    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
+            "python": platform.python_version()}
+
+
+def pareto_plot(report: dict, path: Path) -> None:
+    """Mean optimality against time per triangle, one point per method (seen split), log-log."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    split, timings = report["splits"]["seen"], report["timings"]
+    fig, ax = plt.subplots(figsize=(7, 5))
+    groups = {"fw": ("NeuralSDF+FW", "tab:blue"), "amortized+fw": ("amortized+FW refine", "tab:orange"),
+              "amortized": ("amortized (ours)", "tab:red"), "pgd": ("projected gradient", "tab:green"),
+              "voxel": ("VoxelSDF+FW", "tab:purple")}
+    for prefix, (label, colour) in groups.items():
+        names = [n for n in split if n in timings and _group(n) == prefix]
+        if not names:
+            continue
+        xs = [1e3 * timings[n]["seconds_per_triangle"] for n in names]
+        ys = [max(split[n]["optimality_mean"], 1e-9) for n in names]
+        ax.plot(xs, ys, "o-" if prefix == "fw" else "o", color=colour, label=label)
+        for n, x, y in zip(names, xs, ys):
+            ax.annotate(n, (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time per triangle [ms] (batch of %d)" % report["config"]["timing_batch"])
+    ax.set_ylabel("mean optimality (eq. 12)")
+    ax.set_title(f"error against run time {report.get('label', '')}")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def _group(name: str) -> str:
+    if name.startswith("amortized+"):
+        return "amortized+fw"
+    if name.startswith("voxel"):
+        return "voxel"
+    if name.startswith("fw"):
+        return "fw"
+    return name
+
+
+def format_tables(report: dict) -> str:
+    """The report's tables as plain text (for the CLI and the closing note)."""
+    lines = []
+    for split, rows in report["splits"].items():
+        lines.append(f"[{split}] method | opt p50 | opt p90 | opt mean | NME p50 | NME p90 | NME mean | NME edge/face | ms/tri")
+        for name, s in rows.items():
+            t = report["timings"].get(name, {}).get("seconds_per_triangle")
+            ef = s["nme_mean_edge_or_face"]
+            lines.append(
+                f"{name} | {s['optimality_p50']:.2e} | {s['optimality_p90']:.2e} | {s['optimality_mean']:.2e} | "
+                f"{s['nme_p50']:.4f} | {s['nme_p90']:.4f} | {s['nme_mean']:.4f} | {'-' if ef is None else f'{ef:.4f}'} | "
+                f"{'-' if t is None else f'{1e3 * t:.4f}'}"
+            )
+    for split, row in report.get("table_1", {}).items():
+        if row:
+            lines.append(f"Table I [{split}]: amortized {row['amortized_optimality_mean']:.2e} at {row['amortized_ms_per_triangle']:.4f} ms; "
+                         f"FW-{row['fw_iterations']} ({'reached' if row['fw_reached'] else 'not reached'}) "
+                         f"{row['fw_ms_per_triangle']:.4f} ms; speed-up {row['speedup']:.1f}x")
+    for name, s in report.get("table_4", {}).items():
+        lines.append(f"Table IV {name}: optimality {s['optimality_mean']:.2e}, NME {s['nme_mean']:.4f}")
+    return "\n".join(lines)
+
+
+def bench_model(model_spec, out_dir="bench-results", unseen_meshes=(), config: BenchConfig = BenchConfig(),
+                max_shapes: int | None = None, fit_iters: int = 500, unseen_category: str | None = None,
+                unseen_count: int = 3, data_dir=None, progress: bool = True, log=print) -> Path:
+    """`zoo bench --detector MODEL`: load a package, fit unseen meshes with fit_codes, benchmark; -> JSON path.
+
+    Unseen meshes are ``unseen_meshes`` (up axis z) and/or the first ``unseen_count`` test meshes
+    of ``unseen_category`` (each with its manifest's up axis).
+    """
+    import zoo
+
+    model = zoo.load(model_spec) if isinstance(model_spec, (str, Path)) else model_spec
+    if model.detector is None:
+        raise InputError(f"model {model.name!r} has no detector; train one (zoo fit-category) or bench the solvers only")
+    seen = [model.shape(s) for s in model.shapes[:max_shapes]]
+    unseen = [model.fit_codes(m, iters=fit_iters) for m in unseen_meshes]
+    if unseen_category:
+        unseen += unseen_test_shapes(model, unseen_category, data_dir, unseen_count, fit_iters)
+    return run_detector_benchmark(model.detector, seen, unseen, out_dir, config, label=f"{model.name}@{model.version}",
+                                  progress=progress, log=log)
+
+
+def unseen_test_shapes(model, category: str, data_dir=None, count: int = 3, iters: int = 500) -> list:
+    """The first ``count`` meshes of ``category``'s test split, fitted with the decoder frozen (their own up axes)."""
+    from .categories import load_category, resolve_data_dir, verify_meshes
+
+    cat = load_category(category)
+    stems = cat.stems("test")[:count]
+    paths = verify_meshes(cat, resolve_data_dir(data_dir, cat), stems)
+    return [model.fit_codes(paths[s], iters=iters, up=cat.entry(s).up, name=s) for s in stems]
+
+
+def main(argv=None) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Error against run time of the amortized detector and its baselines.")
+    parser.add_argument("--model", required=True, help="package directory or registered name (the NeuralSDF)")
+    parser.add_argument("--detector", default=None, help="detector directory (detector.safetensors + detector.json); "
+                        "default: the package's own detector")
+    parser.add_argument("--unseen", nargs="*", default=[], help="meshes never seen in training, fitted with fit_codes (up z)")
+    parser.add_argument("--unseen-category", default=None, help="take unseen meshes from this category's test split")
+    parser.add_argument("--unseen-count", type=int, default=3, help="how many test meshes of --unseen-category")
+    parser.add_argument("--data", default=None, help="mesh folder for --unseen-category (default $ZOO_DATA)")
+    parser.add_argument("--ablations", nargs="*", default=[], help="NAME=DIR detector directories for Table IV")
+    parser.add_argument("--out", default="bench-results")
+    parser.add_argument("--max-shapes", type=int, default=None)
+    parser.add_argument("--n-per-shape", type=int, default=None)
+    parser.add_argument("--fit-iters", type=int, default=500)
+    parser.add_argument("--quick", action="store_true", help="the small QUICK configuration")
+    parser.add_argument("--voxels", default=None, help="comma-separated voxel resolutions (default 64,128,256)")
+    parser.add_argument("--threads", type=int, default=0)
+    args = parser.parse_args(argv)
+    import dataclasses
+
+    import zoo
+
+    from .train_detector import load_detector
+
+    config = QUICK if args.quick else BenchConfig()
+    if args.n_per_shape:
+        config = dataclasses.replace(config, n_per_shape=args.n_per_shape)
+    if args.voxels is not None:
+        config = dataclasses.replace(config, voxel_resolutions=tuple(int(r) for r in args.voxels.split(",") if r))
+    if args.threads:
+        config = dataclasses.replace(config, threads=args.threads)
+    model = zoo.load(args.model)
+    detector = load_detector(args.detector) if args.detector else model.detector
+    seen = [model.shape(s) for s in model.shapes[: args.max_shapes]]
+    unseen = [model.fit_codes(m, iters=args.fit_iters) for m in args.unseen]
+    if args.unseen_category:
+        unseen += unseen_test_shapes(model, args.unseen_category, args.data, args.unseen_count, args.fit_iters)
+    ablations = {name: load_detector(path) for name, path in (a.split("=", 1) for a in args.ablations)}
+    path = run_detector_benchmark(detector, seen, unseen, args.out, config, ablations=ablations or None,
+                                  label=f"{model.name}@{model.version}")
+    print(format_tables(json.loads(path.read_text())))
+    print(f"written {path} and {path.with_name(PNG_NAME)}")
+
+
+if __name__ == "__main__":
+    main()

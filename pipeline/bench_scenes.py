@@ -1,0 +1,459 @@
+"""Scene benchmark: the object-level comparison of the paper's Table II, on this machine.
+
+For every scene file (default: the paper's four, ``scenes/{mug-rack,bottle-holder,gear-gear,
+bolt-nut}.toml``) and every method, one row: contacts, candidate and total triangles, the time
+of a whole ``zoo.collide`` call (median of ``repeats`` after one warm-up call) and the peak
+memory of a fresh process that loads the scene and collides it once. Methods:
+
+* ``amortized``: one pass of the model's detector;
+* ``amortized+refine``: the same, then ``refine`` Frank-Wolfe steps warm-started from it;
+* ``fw-matched``: NeuralSDF + Frank-Wolfe at the fewest iterations whose mean optimality
+  (equation (12), over the candidate triangles) is no worse than the amortized answer's (the
+  paper's "FW at the same optimality"); without a detector, Frank-Wolfe at its default 10;
+* ``voxel-fw-256``, ``voxel-fw-512``: Frank-Wolfe on a VoxelSDF of the same SDF with the sample
+  spacing of a 256^3 / 512^3 grid over the SDF's bounds. Building such a grid from a NeuralSDF
+  takes 16.7 M / 134 M network queries (minutes to an hour on two CPU cores), so only the part
+  of it that the scene's candidate triangles can reach is built (their bounding box, grown)
+  and handed to ``zoo.collide`` as its grid: query time is that of the full grid (trilinear
+  lookups are local), and the memory reported for the grid is the full grid's
+  (``nx * ny * nz * 4`` bytes), next to what was built. Frank-Wolfe runs the matched iterations.
+
+Besides, per scene: the amortized narrow phase against one batched value-and-gradient pass of the
+SDF over the same candidates (the floor: that pass is needed for the contact features anyway),
+and the error-against-run-time sweep of Frank-Wolfe.
+
+Peak memory is ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of a child process per (scene,
+method): the high-water mark of its resident set, torch's allocations included (tracemalloc
+does not see them). The child loads the scene (baseline mark), then collides it once; the
+report gives both marks and their difference. Voxel rows report their grid's bytes instead (a
+child would build the grid again), and a sub-grid of more than ``MAX_VOXEL_SAMPLES`` samples is
+not built at all (the row says so).
+
+When a scene names a model that is not packaged yet, its SDF is a stand-in: a VoxelSDF of the
+exact signed distance of the mesh the shape was fitted on (the category manifest gives the
+file), over the region the scene needs, cached in ``<out>/standins``. A stand-in has no
+detector, so the amortized rows say so instead of giving numbers, and its voxel rows are skipped
+(it is a grid already). Every row says which SDF it ran on.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import zoo
+from zoo.collide import DEFAULT_ITERS, candidate_triangles
+from zoo.errors import InputError, ModelNotFoundError
+from zoo.files import atomic_write_text
+from zoo.geometry import bary_to_points, invert_pose, transform_points
+from zoo.voxel import VoxelSDF
+
+from .bench_solvers import machine_info
+from .scenes import Scene, load_scene, scene_from_dict
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+PAPER_SCENES = ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")
+METHODS = ("amortized", "amortized+refine", "fw-matched", "voxel-fw-256", "voxel-fw-512")
+FW_SWEEP = (1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 50, 100)
+RESULT_NAME = "scenes.json"
+MAX_VOXEL_SAMPLES = 4_000_000  # about 100 s of NeuralSDF queries on one CPU core
+PAPER_TABLE_II = {  # candidate / total triangles and whole-collision seconds, amortized and FW
+    "mug-rack": {"candidates": 18, "triangles": 228, "amortized_s": 0.150, "fw_s": 1.778},
+    "bottle-holder": {"candidates": 132, "triangles": 924, "amortized_s": 0.926, "fw_s": 7.619},
+    "gear-gear": {"candidates": 93, "triangles": 2800, "amortized_s": 4.94, "fw_s": 8.79},
+    "bolt-nut": {"candidates": 1714, "triangles": 9548, "amortized_s": 14.2, "fw_s": 61.7},
+}
+
+
+@dataclass
+class BenchScene:
+    """A loaded scene, its SDF's provenance, and its mesh as float32 tensors (as a simulator holds it)."""
+
+    scene: Scene
+    sdf_kind: str  # "model" or "stand-in (why)"
+    vertices: torch.Tensor  # (V, 3) float32, the mesh's frame
+    faces: torch.Tensor  # (F, 3) int64
+    note: str = ""  # why a stand-in was used
+
+    @property
+    def mesh(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.vertices, self.faces
+
+    @property
+    def has_detector(self) -> bool:
+        """A model's shape whose model has a detector (a NeuralShape has ``detect`` either way)."""
+        sdf = self.scene.sdf
+        model = getattr(sdf, "model", None)
+        if model is not None and getattr(model, "detector", None) is None:
+            return False
+        return callable(getattr(sdf, "detect", None)) and self.sdf_kind == "model"
+
+
+# =========================================================================== loading
+
+
+def scene_paths(names=None) -> list[Path]:
+    """Scene files: names of the paper's scenes ("bolt-nut"), or paths; default the four."""
+    out = []
+    for n in names or PAPER_SCENES:
+        p = Path(n)
+        out.append(p if p.suffix == ".toml" else SCENES_DIR / f"{n}.toml")
+    return out
+
+
+def load_bench_scene(path: str | os.PathLike, standin_dir: str | os.PathLike = "out/bench/standins",
+                     allow_standin: bool = True) -> BenchScene:
+    """Load a scene; where its model is not packaged yet, put a stand-in SDF in (see the module doc)."""
+    import tomllib
+
+    path = Path(path)
+    note = ""
+    try:
+        scene, kind = load_scene(path), "model"
+    except ModelNotFoundError as exc:
+        note = str(exc)
+        if not allow_standin:
+            raise
+        spec = tomllib.loads(path.read_text())
+        sdf_spec = spec["sdf"]
+        no_model = {**spec, "sdf": {"analytic": "sphere", "pose": sdf_spec.get("pose")}}
+        scene = scene_from_dict(no_model, base_dir=path.parent)  # everything but the SDF
+        scene.sdf, kind = standin_sdf(sdf_spec["model"], sdf_spec["shape"], scene, Path(standin_dir)), f"stand-in ({exc.__class__.__name__})"
+        scene.sdf_label = f"stand-in:exact-mesh-voxel:{sdf_spec['model']}:{sdf_spec['shape']}"
+    vertices = torch.as_tensor(np.asarray(scene.mesh.vertices), dtype=torch.float32)
+    faces = torch.as_tensor(np.asarray(scene.mesh.faces), dtype=torch.int64)
+    return BenchScene(scene, kind, vertices, faces, note)
+
+
+# =========================================================================== stand-ins
+
+
+class ExactMeshSDF:
+    """Exact signed distance of a mesh (libigl: AABB distance, sign by pseudonormal), SDF protocol.
+
+    For building stand-in grids only: a query costs tens of microseconds per point. The
+    pseudonormal sign is exact for closed meshes; the stand-ins' meshes (Factory bolts, the
+    IndustReal gears after vertex merging, scanned mugs) are closed or nearly so.
+    """
+
+    def __init__(self, mesh):
+        from zoo.errors import require
+
+        self._igl = require("igl")
+        self.v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+        self.f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
+        self.bounds = (torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32))
+
+    def __call__(self, points) -> torch.Tensor:
+        p = torch.as_tensor(points)
+        q = np.ascontiguousarray(p.detach().cpu().numpy(), dtype=np.float64)
+        d = self._igl.signed_distance(q, self.v, self.f, sign_type=self._igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
+        return torch.as_tensor(d, dtype=p.dtype if p.is_floating_point() else torch.float32)
+
+    def value_and_grad(self, points):
+        p = torch.as_tensor(points)
+        q = np.ascontiguousarray(p.detach().cpu().numpy(), dtype=np.float64)
+        d, _, closest, _ = self._igl.signed_distance(q, self.v, self.f, sign_type=self._igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+        g = (q - closest) * np.sign(d)[:, None]
+        g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-30)
+        return torch.as_tensor(d, dtype=p.dtype), torch.as_tensor(g, dtype=p.dtype)
+
+
+def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_cells: int = 128,
+                max_points: int = 1_500_000) -> VoxelSDF:
+    """A VoxelSDF of the exact SDF of ``shape``'s source mesh over the region the scene's mesh reaches.
+
+    The region is the source mesh's bounding box cut to the other mesh's (in the SDF's frame),
+    grown by 5% of the shape's size; the spacing is the shape's longest side / ``spacing_cells``,
+    coarsened if the region would need more than ``max_points`` samples. Cached by name.
+    """
+    from zoo.meshes import load_mesh
+
+    from .categories import load_category, resolve_data_dir
+
+    category = load_category(model)
+    mesh_path = resolve_data_dir(None, category) / category.entry(shape).file
+    key = f"{model}-{shape}-{scene.name}-{spacing_cells}"
+    cache = cache_dir / f"{key}.pt"
+    if cache.is_file():
+        return torch.load(cache, weights_only=False)
+    source = load_mesh(mesh_path)
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in source.bounds)
+    size = float((hi - lo).max())
+    sdf_from_mesh = np.linalg.inv(scene.sdf_pose) @ scene.mesh_pose
+    other = np.asarray(scene.mesh.vertices) @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
+    grow = 0.05 * size
+    r_lo = np.maximum(lo, other.min(0)) - grow
+    r_hi = np.minimum(hi, other.max(0)) + grow
+    if np.any(r_hi <= r_lo):
+        r_lo, r_hi = lo - grow, hi + grow  # no overlap: the scene has no contacts; any box will do
+    spacing = size / spacing_cells
+    while np.prod(np.ceil((r_hi - r_lo) / spacing) + 1) > max_points:
+        spacing *= 1.25
+    shape_res = tuple(int(n) for n in np.ceil((r_hi - r_lo) / spacing) + 1)
+    grid = VoxelSDF(ExactMeshSDF(source), resolution=shape_res, bounds=(r_lo, r_hi), padding=0.0, chunk=1 << 16)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp")
+    torch.save(grid, tmp)
+    os.replace(tmp, cache)
+    return grid
+
+
+def voxel_region(sdf, candidate_tri: torch.Tensor, resolution: int, margin: float):
+    """The part of a ``resolution``^3 VoxelSDF of ``sdf`` that the candidates reach.
+
+    Returns (lo (3,), hi (3,), per-axis samples, full grid bytes). The full grid spans
+    ``sdf.bounds`` grown by VoxelSDF's default padding (5% of the longest side); the part has the
+    same spacing and covers the candidates' bounding box grown by ``margin`` and two cells, cut to
+    the full grid's box.
+    """
+    lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in sdf.bounds)
+    pad = 0.05 * float((hi - lo).max())
+    spacing = ((hi - lo) + 2 * pad) / (resolution - 1)  # (3,)
+    t = candidate_tri.double().reshape(-1, 3)
+    full_lo, full_hi = lo - pad, hi + pad  # beyond the full grid's box, a VoxelSDF extrapolates: no samples there
+    r_lo = torch.maximum(t.amin(0) - margin - 2 * spacing, full_lo)
+    r_hi = torch.minimum(t.amax(0) + margin + 2 * spacing, full_hi)
+    samples = tuple(int(n) for n in (torch.ceil((r_hi - r_lo) / spacing) + 1).tolist())
+    r_hi = r_lo + spacing * (torch.tensor(samples, dtype=torch.float64) - 1)  # exactly the full grid's spacing
+    return r_lo, r_hi, samples, resolution**3 * 4
+
+
+def install_voxel_part(sdf, resolution: int, lo, hi, samples) -> VoxelSDF:
+    """Build the part of the grid and hand it to ``zoo.collide`` as its grid of ``sdf`` at ``resolution``.
+
+    ``collide(method="voxel-fw")`` caches its grids by SDF and resolution and builds a missing one
+    over the whole of ``sdf.bounds``; putting the part there first keeps everything else of the
+    call as it is (the broad phase on ``sdf``, the solver on the grid).
+    """
+    from zoo import collide as collide_module  # the function shadows the module on `zoo`
+
+    module = sys.modules[collide_module.__module__]
+    grid = VoxelSDF(sdf, resolution=samples, bounds=(lo, hi), padding=0.0)
+    module._voxel_cache[(id(sdf), (resolution,) * 3)] = (sdf, grid)
+    return grid
+
+
+# =========================================================================== measuring
+
+
+def candidate_set(bs: BenchScene) -> tuple[torch.Tensor, torch.Tensor]:
+    """The broad phase's candidates: indices (C,) and triangles (C, 3, 3) in the SDF's frame."""
+    s = bs.scene
+    pose = invert_pose(torch.as_tensor(s.sdf_pose, dtype=torch.float64)) @ torch.as_tensor(s.mesh_pose, dtype=torch.float64)
+    tri = transform_points(pose.float(), bs.vertices)[bs.faces]
+    idx = candidate_triangles(s.sdf, tri, s.margin)
+    return idx, tri[idx]
+
+
+def median_seconds(fn, repeats: int) -> tuple[float, object]:
+    """Median wall time of ``fn()`` over ``repeats`` calls after one warm-up call; and its last result."""
+    out = fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def fw_sweep(sdf, tri: torch.Tensor, iters=FW_SWEEP) -> list[dict]:
+    """Mean and p90 optimality of Frank-Wolfe at each iteration count, on the candidate triangles."""
+    rows = []
+    for k in iters:
+        with torch.no_grad():
+            bary = zoo.solvers.frank_wolfe(sdf, tri, iters=k)
+        gap = zoo.solvers.optimality(sdf, tri, bary)
+        rows.append({"iters": k, "optimality_mean": float(gap.mean()), "optimality_p90": float(gap.quantile(0.9))})
+    return rows
+
+
+def matched_iterations(sweep: list[dict], target: float | None) -> int:
+    """Fewest FW iterations whose mean optimality is <= ``target`` (the last swept if none is; 10 without a target)."""
+    if target is None:
+        return DEFAULT_ITERS["fw"]
+    for row in sweep:
+        if row["optimality_mean"] <= target:
+            return row["iters"]
+    return sweep[-1]["iters"]
+
+
+def method_call(bs: BenchScene, name: str, fw_iters: int, refine: int, region=None):
+    """(kwargs for zoo.collide, the SDF to pass) of one method row."""
+    if name == "amortized":
+        return {"method": "amortized"}, bs.scene.sdf
+    if name == "amortized+refine":
+        return {"method": "amortized", "refine": refine}, bs.scene.sdf
+    if name == "fw-matched":
+        return {"method": "fw", "iters": fw_iters}, bs.scene.sdf
+    if name.startswith("voxel-fw-"):
+        resolution = int(name.rsplit("-", 1)[1])
+        install_voxel_part(bs.scene.sdf, resolution, *region[:3])
+        return {"method": "voxel-fw", "voxel_resolution": resolution, "iters": fw_iters}, bs.scene.sdf
+    raise InputError(f"unknown bench method {name!r}; use one of {', '.join(METHODS)}")
+
+
+def collide_once(bs: BenchScene, sdf, kwargs: dict):
+    s = bs.scene
+    with torch.no_grad():
+        return zoo.collide(sdf, bs.mesh, sdf_pose=s.sdf_pose, mesh_pose=s.mesh_pose, margin=s.margin, **kwargs)
+
+
+def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
+    """Amortized detect against one value-and-gradient pass at the candidates' centroids."""
+    sdf = bs.scene.sdf
+    points = bary_to_points(tri, torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype))
+    vg_s, _ = median_seconds(lambda: sdf.value_and_grad(points), repeats)
+    out = {"candidates": int(tri.shape[0]), "value_and_grad_s": vg_s}
+    if bs.has_detector:
+        det_s, _ = median_seconds(lambda: sdf.detect(tri), repeats)
+        out.update(detect_s=det_s, ratio=det_s / vg_s)
+    return out
+
+
+def measure_scene(bs: BenchScene, methods=METHODS, repeats: int = 5, refine: int = 5, memory: bool = True,
+                  scene_path: Path | None = None, standin_dir: str = "out/bench/standins", progress=print) -> dict:
+    """One scene's rows (see the module doc)."""
+    s = bs.scene
+    idx, tri = candidate_set(bs)
+    sweep = fw_sweep(s.sdf, tri) if len(tri) else []
+    amortized_opt = None
+    if bs.has_detector and len(tri):
+        with torch.no_grad():
+            amortized_opt = float(zoo.solvers.optimality(s.sdf, tri, s.sdf.detect(tri)).mean())
+    k = matched_iterations(sweep, amortized_opt) if sweep else 10
+    report = {
+        "scene": s.name, "sdf": s.sdf_label, "sdf_kind": bs.sdf_kind, "sdf_note": bs.note, "mesh": s.mesh_label, "margin": s.margin,
+        "n_triangles": int(bs.faces.shape[0]), "n_candidates": int(idx.numel()),
+        "amortized_optimality_mean": amortized_opt, "fw_matched_iters": k, "fw_sweep": sweep,
+        "narrow_phase": narrow_phase_ratio(bs, tri, repeats) if len(tri) else None,
+        "paper": PAPER_TABLE_II.get(s.name), "rows": [],
+    }
+    for name in methods:
+        progress(f"  {s.name}: {name}")
+        report["rows"].append(measure_method(bs, name, k, refine, tri, repeats, memory, scene_path, standin_dir))
+    return report
+
+
+def measure_method(bs, name, fw_iters, refine, tri, repeats, memory, scene_path, standin_dir) -> dict:
+    row = {"method": name}
+    if name.startswith("amortized") and not bs.has_detector:
+        return {**row, "skipped": f"no detector ({bs.sdf_kind}: {bs.scene.sdf_label})"}
+    region = None
+    if name.startswith("voxel-fw-"):
+        if isinstance(bs.scene.sdf, VoxelSDF):
+            return {**row, "skipped": "the stand-in SDF is a voxel grid already"}
+        if len(tri) == 0:
+            return {**row, "skipped": "no candidate triangles"}
+        resolution = int(name.rsplit("-", 1)[1])
+        region = voxel_region(bs.scene.sdf, tri, resolution, bs.scene.margin)
+        row.update(grid_samples_built=int(np.prod(region[2])), grid_bytes_full=region[3], grid_per_axis_built=list(region[2]))
+        if row["grid_samples_built"] > MAX_VOXEL_SAMPLES:
+            return {**row, "skipped": f"building {row['grid_samples_built']:,} samples of the SDF exceeds the limit of "
+                                      f"{MAX_VOXEL_SAMPLES:,} (pipeline.bench_scenes.MAX_VOXEL_SAMPLES)"}
+    t0 = time.perf_counter()
+    kwargs, sdf = method_call(bs, name, fw_iters, refine, region)  # builds the voxel grid, if any
+    row["setup_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    first = collide_once(bs, sdf, kwargs)
+    row["first_call_s"] = time.perf_counter() - t0
+    seconds, c = median_seconds(lambda: collide_once(bs, sdf, kwargs), repeats)
+    del first
+    row.update(kwargs={k: (list(v) if isinstance(v, tuple) else v) for k, v in kwargs.items()}, time_s=seconds,
+               repeats=repeats, n_contacts=len(c), n_candidates=c.n_candidates, n_triangles=c.n_triangles,
+               min_depth=float(c.depths.min()) if len(c) else None)
+    if name.startswith("voxel-fw-"):
+        # the grid dominates; a child process would build it again, so report its bytes instead
+        row["memory"] = {"grid_mb_full": row["grid_bytes_full"] / 2**20, "grid_mb_built": row["grid_samples_built"] * 4 / 2**20}
+    elif memory and scene_path is not None:
+        row["memory"] = peak_memory_in_child(scene_path, name, fw_iters, refine, standin_dir)
+    return row
+
+
+# =========================================================================== memory
+
+
+def peak_memory_in_child(scene_path: Path, method: str, fw_iters: int, refine: int, standin_dir: str) -> dict:
+    """Peak RSS (MB) of a fresh process: after loading the scene, and after one collide with ``method``."""
+    cmd = [sys.executable, "-m", "pipeline.bench_scenes", "--child", str(scene_path), method, str(fw_iters), str(refine), standin_dir]
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parent.parent)
+    if done.returncode != 0:
+        return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+
+
+def _child(scene_path: str, method: str, fw_iters: str, refine: str, standin_dir: str) -> None:
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads())))
+    bs = load_bench_scene(scene_path, standin_dir)
+    loaded = _peak_rss_mb()
+    kwargs, sdf = method_call(bs, method, int(fw_iters), int(refine))
+    collide_once(bs, sdf, kwargs)
+    peak = _peak_rss_mb()
+    print(json.dumps({"peak_rss_loaded_mb": loaded, "peak_rss_mb": peak, "collide_extra_mb": peak - loaded}))
+
+
+# =========================================================================== the report
+
+
+def run_scene_benchmark(scenes=None, out_dir: str | os.PathLike = "out/bench", methods=METHODS, repeats: int = 5,
+                        refine: int = 5, threads: int | None = None, memory: bool = True, progress=print) -> Path:
+    """Measure every scene and write ``<out_dir>/scenes.json``; returns its path."""
+    if threads:
+        torch.set_num_threads(int(threads))
+    standin_dir = str(Path(out_dir) / "standins")
+    reports = []
+    for path in scene_paths(scenes):
+        progress(f"{path.stem}: loading")
+        bs = load_bench_scene(path, standin_dir)
+        reports.append(measure_scene(bs, methods, repeats, refine, memory, path, standin_dir, progress))
+    report = {"machine": machine_info(), "config": {"repeats": repeats, "refine": refine, "methods": list(methods),
+              "memory": "peak RSS (getrusage ru_maxrss) of one child process per scene and method",
+              "mesh_dtype": "float32"}, "scenes": reports}
+    out = Path(out_dir) / RESULT_NAME
+    atomic_write_text(out, json.dumps(report, indent=1) + "\n")
+    return out
+
+
+TABLE_HEADER = ["scene", "SDF", "cand / tris", "method", "contacts", "time (ms)", "peak RSS (MB)", "+collide (MB)", "paper (s)"]
+
+
+def format_table(report: dict) -> list[list[str]]:
+    rows = []
+    for sc in report["scenes"]:
+        paper = sc.get("paper") or {}
+        for r in sc["rows"]:
+            name = r["method"] + (f" ({sc['fw_matched_iters']} it)" if r["method"] == "fw-matched" else "")
+            ref = paper.get("amortized_s") if r["method"] == "amortized" else paper.get("fw_s") if r["method"] == "fw-matched" else None
+            kind = "model" if sc["sdf_kind"] == "model" else "stand-in"
+            if "skipped" in r:
+                rows.append([sc["scene"], kind, f"{sc['n_candidates']} / {sc['n_triangles']}", name, "-", "n/a", "", "", ""])
+                continue
+            mem = r.get("memory", {})
+            peak = f"{mem['peak_rss_mb']:.0f}" if "peak_rss_mb" in mem else f"grid {mem.get('grid_mb_full', float('nan')):.0f}"
+            rows.append([sc["scene"], kind, f"{r['n_candidates']} / {r['n_triangles']}", name, str(r["n_contacts"]),
+                         f"{1e3 * r['time_s']:.1f}", peak, f"{mem.get('collide_extra_mb', float('nan')):.0f}",
+                         "" if ref is None else f"{ref:g}"])
+    return rows
+
+
+if __name__ == "__main__":  # the memory probe's child process
+    if len(sys.argv) == 7 and sys.argv[1] == "--child":
+        _child(*sys.argv[2:])
+    else:
+        raise SystemExit("usage: python -m pipeline.bench_scenes --child SCENE METHOD FW_ITERS REFINE STANDIN_DIR")

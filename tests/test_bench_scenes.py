@@ -1,0 +1,133 @@
+"""The scene benchmark (Table II analog) and the paper's four scene files.
+
+Fast: the benchmark runs on a small analytic scene with an exact detector; the four scene files
+are checked for what they name (models, shapes, mesh files), not collided (that needs the
+models and ../shared, and is what `zoo bench --scenes` does).
+"""
+
+import json
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import zoo
+from pipeline import bench_scenes
+from pipeline.bench_scenes import (
+    PAPER_SCENES,
+    BenchScene,
+    matched_iterations,
+    measure_scene,
+    peak_memory_in_child,
+    scene_paths,
+    voxel_region,
+)
+from pipeline.categories import load_category
+from pipeline.scenes import scene_from_dict
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class SphereWithCentroidDetector(zoo.Sphere):
+    """A sphere whose "detector" answers the centroid: cheap, and worse than FW, so matching is visible."""
+
+    def detect(self, triangles):
+        return torch.full(triangles.shape[:2], 1 / 3, dtype=triangles.dtype)
+
+
+def small_scene(tmp_path=None) -> BenchScene:
+    spec = {
+        "name": "ball-plane", "margin": 0.002,
+        "sdf": {"analytic": "sphere", "params": {"radius": 0.05}, "pose": {"translation": [0.01, -0.02, 0.049]}},
+        "mesh": {"procedural": "plane", "params": {"size": 0.2, "max_edge": 0.01}},
+    }
+    scene = scene_from_dict(spec)
+    scene.sdf = SphereWithCentroidDetector(0.05)
+    return BenchScene(scene, "model", torch.as_tensor(np.asarray(scene.mesh.vertices), dtype=torch.float32),
+                      torch.as_tensor(np.asarray(scene.mesh.faces)))
+
+
+def test_the_four_scene_files_name_packaged_categories_and_staged_meshes():
+    expected = {"mug-rack": ("mugs", "rack/ndf_simple_rack.obj"), "bolt-nut": ("bolts", "nut/factory_nut_m16.obj"),
+                "gear-gear": ("gears", "gear/industreal_gear_medium.obj"), "bottle-holder": ("bottles", None)}
+    staged = {m.file for c in ("scene_parts", "nuts", "gears") for m in load_category(c).meshes.values()}
+    for path in scene_paths():
+        spec = tomllib.loads(path.read_text())
+        model, mesh_file = expected[spec["name"]]
+        assert spec["sdf"]["model"] == model and spec["method"] == "amortized"
+        assert spec["sdf"]["shape"] in load_category(model).train_stems  # a fitted shape of the model
+        if mesh_file is None:
+            assert spec["mesh"]["procedural"] == "holder"
+        else:
+            assert spec["mesh"]["file"] == mesh_file and mesh_file in staged
+    assert [p.stem for p in scene_paths()] == list(PAPER_SCENES)
+
+
+def test_matched_iterations_is_the_first_sweep_row_at_the_target():
+    sweep = [{"iters": k, "optimality_mean": 1.0 / k} for k in (1, 2, 5, 10)]
+    assert matched_iterations(sweep, 0.3) == 5
+    assert matched_iterations(sweep, 1e-6) == 10  # none reaches it: the last swept
+    assert matched_iterations(sweep, None) == 10  # no detector: FW's default
+
+
+def test_voxel_region_has_the_full_grids_spacing_and_holds_the_candidates():
+    sphere = zoo.Sphere(0.1)
+    tri = torch.tensor([[[0.09, 0.0, 0.0], [0.1, 0.01, 0.0], [0.1, 0.0, 0.01]]])
+    lo, hi, samples, full_bytes = voxel_region(sphere, tri, 256, margin=1e-3)
+    full_spacing = (0.2 * 1.1) / 255
+    np.testing.assert_allclose(((hi - lo) / (torch.tensor(samples) - 1)).numpy(), full_spacing, rtol=1e-5)
+    assert bool((lo <= tri.reshape(-1, 3).double().amin(0)).all() & (hi >= tri.reshape(-1, 3).double().amax(0)).all())
+    assert full_bytes == 256**3 * 4 and np.prod(samples) < 30**3
+
+
+def test_the_voxel_part_is_the_grid_collide_uses():
+    from zoo.collide import clear_voxel_cache
+
+    sphere = zoo.Sphere(0.1)
+    vertices = np.array([[0.09, -0.02, -0.02], [0.09, 0.02, -0.02], [0.09, 0.0, 0.03]])
+    mesh = (vertices, np.array([[0, 1, 2]]))
+    lo, hi, samples, _ = voxel_region(sphere, torch.as_tensor(vertices[None]), 64, margin=1e-3)
+    grid = bench_scenes.install_voxel_part(sphere, 64, lo, hi, samples)
+    c = zoo.collide(sphere, mesh, method="voxel-fw", voxel_resolution=64, margin=1e-3)
+    clear_voxel_cache()
+    torch.testing.assert_close(c.depths, grid(c.points).to(c.depths))  # reported on the part, not a new grid
+    assert len(c) == 1 and float(c.depths[0]) == pytest.approx(-0.01, abs=2e-4)
+
+
+def test_measure_scene_gives_every_row_of_table_ii():
+    bs = small_scene()
+    report = measure_scene(bs, repeats=1, memory=False, progress=lambda *_: None)
+    rows = {r["method"]: r for r in report["rows"]}
+    assert list(rows) == list(bench_scenes.METHODS)
+    assert report["n_triangles"] == len(bs.faces) and 0 < report["n_candidates"] < report["n_triangles"]
+    # the centroid "detector" is matched by few FW iterations; more are never needed
+    assert report["fw_matched_iters"] <= 3 and report["amortized_optimality_mean"] > 0
+    assert rows["fw-matched"]["kwargs"] == {"method": "fw", "iters": report["fw_matched_iters"]}
+    for name, r in rows.items():
+        assert r["time_s"] > 0 and r["n_candidates"] == report["n_candidates"], name
+        assert r["n_contacts"] > 0
+    assert rows["voxel-fw-512"]["grid_bytes_full"] == 512**3 * 4
+    assert rows["voxel-fw-512"]["grid_samples_built"] < 512**3 / 20  # only the part the candidates reach is built
+    assert report["narrow_phase"]["ratio"] > 0
+    json.dumps(report)  # JSON-ready
+
+
+def test_a_scene_without_its_model_runs_on_a_labelled_stand_in_or_says_why(monkeypatch):
+    bs = small_scene()
+    bs.sdf_kind = "stand-in (ModelNotFoundError)"
+    report = measure_scene(bs, methods=("amortized", "fw-matched"), repeats=1, memory=False, progress=lambda *_: None)
+    amortized, fw = report["rows"]
+    assert "no detector" in amortized["skipped"] and fw["n_contacts"] > 0 and report["fw_matched_iters"] == 10
+
+
+def test_peak_memory_comes_from_a_child_process(tmp_path):
+    scene = tmp_path / "ball.toml"
+    scene.write_text(
+        'name = "ball"\nmargin = 0.002\n[sdf]\nanalytic = "sphere"\nparams = { radius = 0.05 }\n'
+        'pose = { translation = [0.0, 0.0, 0.049] }\n[mesh]\nprocedural = "plane"\nparams = { size = 0.2, max_edge = 0.02 }\n'
+    )
+    mem = peak_memory_in_child(scene, "fw-matched", 10, 5, str(tmp_path / "standins"))
+    assert mem["peak_rss_mb"] >= mem["peak_rss_loaded_mb"] > 50  # python + torch
+    assert mem["collide_extra_mb"] >= 0

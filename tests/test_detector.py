@@ -1,0 +1,346 @@
+"""The amortized detector against slow, obviously-correct references.
+
+Stand-in for a fitted NeuralShape: an analytic torus (exact SDF) with a fixed random code
+cloud for the vertex features, in a frame that a known similarity maps to the normalised one.
+"""
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import zoo
+from pipeline.train_detector import (
+    TrainConfig,
+    TrainingData,
+    detector_losses,
+    load_detector,
+    save_detector,
+    train,
+)
+from pipeline.triangle_sampling import sample_constrained_triangles
+from zoo.detector import AmortizedDetector, detect, subdivision_barycentrics
+from zoo.errors import InputError
+from zoo.geometry import bary_to_points, perimeter
+from zoo.meshes import Similarity
+from zoo.neural import interpolate_codes
+from zoo.solvers import frank_wolfe, optimality, reference
+
+MODES = ("condition", "context", "temperature", "additive", "none")
+
+
+class StandInShape:
+    """Torus SDF + fixed random code cloud, the interface detect() uses of a NeuralShape."""
+
+    def __init__(self, similarity=None, n_codes=64, dim=32, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        self.normalised = zoo.Torus(0.3, 0.06)
+        self.positions = torch.rand(1, n_codes, 3, generator=g) - 0.5
+        self.codes = torch.randn(1, n_codes, dim, generator=g)
+        self.similarity = similarity
+
+    def features(self, points_norm):
+        p = torch.as_tensor(points_norm).float()
+        return interpolate_codes(p.unsqueeze(0), self.positions, self.codes, 1e-16).squeeze(0)
+
+    def source_sdf(self):
+        """The same torus in the source frame (for references): f_src(x) = f_n(S x) / s."""
+        sim, f = self.similarity, self.normalised
+
+        class Src(zoo.SDFBase):
+            bounds = (torch.full((3,), -10.0), torch.full((3,), 10.0))
+
+            def _distance(self, x):
+                m = torch.as_tensor(sim.matrix, dtype=x.dtype)
+                return f(x @ m[:3, :3].T + m[:3, 3]) / sim.scale
+
+        return Src()
+
+
+def random_inputs(m=64, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    tri = (torch.rand(m, 3, 3, generator=g, dtype=torch.float64) - 0.5).to(dtype)
+    feat = torch.randn(m, 3, 32, generator=g, dtype=torch.float64).to(dtype)
+    return tri, feat
+
+
+def features_of(shape, tri):
+    return shape.features(tri.reshape(-1, 3)).reshape(tri.shape[0], 3, -1)
+
+
+@pytest.fixture(scope="module")
+def torus_data():
+    shape = StandInShape()
+    tri = sample_constrained_triangles(shape.normalised, 3072, seed=1, batch=8192)
+    return shape, tri, features_of(shape, tri)
+
+
+@pytest.fixture(scope="module")
+def trained(torus_data):
+    torch.set_num_threads(1)
+    shape, tri, feat = torus_data
+    vsdf = vertex_sdf_of(shape.normalised, tri[:2560])
+    data = TrainingData(tri[:2560], feat[:2560], torch.zeros(2560, dtype=torch.long), [shape.normalised], vsdf)
+    # the variant that also reads f at the vertices: random stand-in features carry no shape, and
+    # a feature-only detector needs far more than a test's few seconds to learn the torus
+    detector_config = {**AmortizedDetector().config(), "vertex_sdf": True}
+    config = TrainConfig(steps=400, batch_size=512, lr=1e-2, validate_every=400, checkpoint_every=400, validation_size=256,
+                         detector=detector_config)
+    detector, _ = train(data, config, progress=False)
+    return detector.eval()
+
+
+def vertex_sdf_of(sdf, tri):
+    return sdf(tri.reshape(-1, 3)).reshape(-1, 3)
+
+
+# --------------------------------------------------------------------------- structure
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_every_vertex_order_gives_the_same_point(mode):
+    torch.manual_seed(0)
+    det = AmortizedDetector(triangle_feature=mode)
+    tri, feat = random_inputs()
+    with torch.no_grad():
+        p0 = bary_to_points(tri, det(tri, feat))
+        for perm in itertools.permutations(range(3)):
+            bary = det(tri[:, perm], feat[:, perm])
+            assert torch.allclose(bary_to_points(tri[:, perm], bary), p0, atol=1e-6), perm
+
+
+@pytest.mark.parametrize("output", ["sparsemax", "grid"])
+def test_other_outputs_are_order_invariant_and_on_the_simplex(output):
+    torch.manual_seed(1)
+    det = AmortizedDetector(output=output, vertex_sdf=True)
+    tri, feat = random_inputs(m=50, seed=4)
+    vsdf = tri.norm(dim=-1) - 0.3
+    with torch.no_grad():
+        b = det(tri, feat * 20, vsdf)
+        assert (b >= 0).all() and torch.allclose(b.sum(-1), torch.ones(50), atol=1e-5)
+        p0 = bary_to_points(tri, b)
+        for perm in itertools.permutations(range(3)):
+            p = bary_to_points(tri[:, perm], det(tri[:, perm], feat[:, perm] * 20, vsdf[:, perm]))
+            assert torch.allclose(p, p0, atol=1e-5), perm
+    with pytest.raises(InputError, match="vertex_sdf"):
+        det(tri, feat)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_output_lies_on_the_simplex(mode):
+    det = AmortizedDetector(triangle_feature=mode, vertex_features=(mode != "none"))
+    tri, feat = random_inputs(m=200, seed=3)
+    with torch.no_grad():
+        b = det(tri, feat * 50)  # large features: logits far apart
+    assert (b >= 0).all() and torch.allclose(b.sum(-1), torch.ones(200), atol=1e-6)
+
+
+def test_triangle_feature_changes_the_answer_when_conditioned():
+    torch.manual_seed(0)
+    det = AmortizedDetector(triangle_feature="condition")
+    tri, feat = random_inputs()
+    with torch.no_grad():
+        before = det(tri, feat)
+        original = det.triangle_feature_vector
+        det.triangle_feature_vector = lambda z, off: original(z, off) + 1.0
+        after = det(tri, feat)
+    assert (after - before).abs().max() > 1e-3
+
+
+def test_paper_equation_8_as_printed_ignores_the_triangle_feature():
+    torch.manual_seed(0)
+    det = AmortizedDetector(triangle_feature="additive")
+    tri, feat = random_inputs()
+    with torch.no_grad():
+        before = det(tri, feat)
+        original = det.triangle_feature_vector
+        det.triangle_feature_vector = lambda z, off: original(z, off) + torch.randn_like(original(z, off)) * 10
+        after = det(tri, feat)
+    assert torch.allclose(after, before, atol=1e-6)
+    # and no gradient ever reaches h_psi2 or g_phi: the softmax cancels the common shift
+    det.triangle_feature_vector = original
+    bary = det(tri, feat)
+    (bary * torch.randn_like(bary)).sum().backward()
+    for p in list(det.h_psi2.parameters()) + list(det.g_phi.parameters()):
+        assert p.grad is None or p.grad.abs().max() < 1e-6
+
+
+def test_config_round_trip_and_files(tmp_path):
+    det = AmortizedDetector(triangle_feature="temperature", hidden=16)
+    again = AmortizedDetector.from_config(det.config())
+    again.load_state_dict(det.state_dict())
+    tri, feat = random_inputs()
+    with torch.no_grad():
+        assert torch.equal(det(tri, feat), again(tri, feat))
+    save_detector(tmp_path, det)
+    loaded = load_detector(tmp_path)
+    with torch.no_grad():
+        assert torch.equal(det(tri, feat), loaded(tri, feat))
+    with pytest.raises(InputError, match="unknown detector config"):
+        AmortizedDetector.from_config({**det.config(), "bogus": 1})
+    with pytest.raises(InputError, match="triangle_feature"):
+        AmortizedDetector(triangle_feature="sum")
+
+
+def test_degenerate_triangles_give_finite_answers():
+    det = AmortizedDetector()
+    shape = StandInShape()
+    p = torch.tensor([0.3, 0.1, 0.1])
+    tri = torch.stack([
+        p.expand(3, 3),  # a point
+        torch.stack([p, p + 0.01, p + 0.02]),  # collinear
+        torch.stack([p, p, p + torch.tensor([0.05, 0.0, 0.0])]),  # two vertices equal
+    ])
+    b = detect(det, shape, tri)
+    assert torch.isfinite(b).all() and torch.allclose(b.sum(-1), torch.ones(3))
+
+
+def test_bad_features_shape_is_a_typed_error():
+    det = AmortizedDetector()
+    tri, feat = random_inputs()
+    with pytest.raises(InputError, match="features must have shape"):
+        det(tri, feat[..., :16])
+
+
+# --------------------------------------------------------------------------- loss
+
+
+def test_optimality_loss_is_equation_12_times_perimeter(torus_data):
+    shape, tri, _ = torus_data
+    tri = tri[:300].double()
+    bary = torch.distributions.Dirichlet(torch.ones(3, dtype=torch.float64)).sample((300,))
+    l_op, l_min = detector_losses(shape.normalised, tri, bary, create_graph=False)
+    assert torch.allclose(l_op, optimality(shape.normalised, tri, bary) * perimeter(tri), atol=1e-12)
+    # and by hand: g . p - min over the three vertices of g . v
+    p = bary_to_points(tri, bary)
+    f, g = shape.normalised.value_and_grad(p)
+    by_hand = torch.tensor([float(g[m] @ p[m] - min(g[m] @ tri[m, i] for i in range(3))) for m in range(300)],
+                           dtype=torch.float64)
+    assert torch.allclose(l_op, by_hand, atol=1e-12)
+    assert torch.allclose(l_min, f.clamp_min(0))
+
+
+def test_optimality_loss_reaches_the_detector_through_the_sdf_gradient(torus_data):
+    shape, tri, feat = torus_data
+    det = AmortizedDetector()
+    bary = det(tri[:64], feat[:64])
+    l_op, _ = detector_losses(shape.normalised, tri[:64], bary, create_graph=True)
+    l_op.mean().backward()
+    grads = [p.grad for p in det.h_psi1.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads) and any(g.abs().max() > 0 for g in grads)
+
+
+# --------------------------------------------------------------------------- training and use
+
+
+def test_short_training_beats_the_centroid_and_the_best_vertex(torus_data, trained):
+    shape, tri, feat = torus_data
+    sdf = shape.normalised
+    test_tri, test_feat = tri[2560:], feat[2560:]
+    with torch.no_grad():
+        pred = trained(test_tri, test_feat, vertex_sdf_of(sdf, test_tri))
+    centroid = torch.full_like(pred, 1 / 3)
+    vertex_f = torch.stack([sdf(test_tri[:, i]) for i in range(3)], -1)
+    best_vertex = torch.nn.functional.one_hot(vertex_f.argmin(-1), 3).float()
+    ours = optimality(sdf, test_tri, pred).mean()
+    assert ours < 0.1 * optimality(sdf, test_tri, centroid).mean()
+    assert ours < optimality(sdf, test_tri, best_vertex).mean()
+
+
+def test_training_resumes_from_its_checkpoint(torus_data, tmp_path, monkeypatch):
+    import pipeline.train_detector as td
+
+    shape, tri, feat = torus_data
+    data = TrainingData(tri[:512], feat[:512], torch.zeros(512, dtype=torch.long), [shape.normalised])
+    config = TrainConfig(steps=6, batch_size=128, checkpoint_every=3, validate_every=6, validation_size=64)
+    straight, _ = train(data, config, progress=False)
+    original, calls = td.batch_losses, {"n": 0}
+
+    def crash_at_step_five(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(td, "batch_losses", crash_at_step_five)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, config, out_dir=tmp_path, progress=False)
+    monkeypatch.setattr(td, "batch_losses", original)
+    resumed, history = train(data, config, out_dir=tmp_path, progress=False)
+    assert history["step"] == list(range(1, 7))
+    for a, b in zip(straight.state_dict().values(), resumed.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-6)
+    assert (tmp_path / "detector.safetensors").is_file()
+
+
+def test_detect_works_in_the_source_frame(torus_data, trained):
+    shape, tri, feat = torus_data
+    rot = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64))[0]
+    rot = rot * torch.sign(torch.det(rot))
+    sim = Similarity(2.5, rot.numpy(), np.array([0.1, -0.2, 0.05]))
+    src_shape = StandInShape(similarity=sim)
+    tri_n = tri[2560:2700].double()
+    tri_src = torch.as_tensor(sim.to_source(tri_n.numpy()))
+    b_src = detect(trained, src_shape, tri_src)
+    b_norm = detect(trained, StandInShape(), tri_n.float())
+    assert b_src.dtype == torch.float64
+    assert torch.allclose(b_src.float(), b_norm, atol=1e-4)
+
+
+def test_huge_triangle_is_subdivided_and_lands_near_the_reference(trained):
+    shape = StandInShape()
+    sdf = shape.normalised
+    # triangles 0.3-0.6 long hovering over the torus, far outside the trained 0.03-0.08
+    g = torch.Generator().manual_seed(2)
+    base = torch.tensor([[0.25, -0.2, 0.09], [0.45, 0.15, 0.1], [0.05, 0.3, 0.11]])
+    tri = torch.stack([base + 0.05 * torch.randn(3, 3, generator=g) * torch.tensor([1, 1, 0.1]) for _ in range(8)])
+    ours = detect(trained, shape, tri)
+    ref = reference(sdf, tri.double())
+    f_ours = sdf(bary_to_points(tri, ours))
+    f_ref = sdf(bary_to_points(tri.double(), ref)).float()
+    assert (f_ours - f_ref).max() < 2e-3  # within the pieces' size tolerance of the global minimum
+    # and the subdivision itself tiles the parent: pieces' areas sum to the parent's
+    pieces = subdivision_barycentrics(4)
+    assert pieces.shape == (16, 3, 3) and torch.allclose(pieces.sum(-1), torch.ones(16, 3))
+
+
+def test_penetrating_triangle_gets_a_point_inside(trained):
+    shape = StandInShape()
+    sdf = shape.normalised
+    # triangles cutting through the tube (ring radius 0.3 in the xy plane, tube 0.06)
+    g = torch.Generator().manual_seed(4)
+    angle = torch.rand(32, generator=g) * 2 * math.pi
+    centre = torch.stack([0.3 * torch.cos(angle), 0.3 * torch.sin(angle), torch.zeros(32)], -1)
+    offsets = torch.tensor([[0.04, 0.0, 0.0], [-0.02, 0.035, 0.0], [-0.02, -0.035, 0.01]])
+    tri = centre[:, None] + offsets
+    b = detect(trained, shape, tri)
+    f = sdf(bary_to_points(tri, b))
+    assert (f < 0).all()
+    vertex_f = torch.stack([sdf(tri[:, i]) for i in range(3)], -1)
+    assert (f <= vertex_f.min(-1).values + 1e-6).float().mean() > 0.5 or (f < 0.5 * vertex_f.min(-1).values).all()
+
+
+# --------------------------------------------------------------------------- benchmark
+
+
+def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
+    import json
+
+    from pipeline.bench_detector import BenchConfig, format_tables, run_detector_benchmark
+
+    config = BenchConfig(n_per_shape=40, fw_iters=(1, 3, 50), refine_iters=(1,), voxel_resolutions=(16,), timing_batch=200,
+                         repeats=1, max_timed_fw_iters=3, reference_resolution=8)
+    path = run_detector_benchmark(trained, [StandInShape()], [StandInShape(seed=1)], tmp_path, config,
+                                  ablations={"full": trained}, log=lambda *a: None)
+    report = json.loads(path.read_text())
+    assert (tmp_path / "bench_detector.png").stat().st_size > 1000
+    seen = report["splits"]["seen"]
+    assert {"amortized", "amortized+fw1", "fw1", "fw3", "fw50", "pgd", "voxel16+fw50"} <= set(seen)
+    assert seen["fw50"]["optimality_mean"] < seen["fw1"]["optimality_mean"]
+    assert report["timings"]["fw50"]["measured"] is False and report["timings"]["fw3"]["measured"] is True
+    t1 = report["table_1"]["seen"]
+    assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
+    assert set(report["table_3"]) == {"seen", "unseen"} and "full" in report["table_4"]
+    assert "Table I" in format_tables(report)

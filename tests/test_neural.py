@@ -1,0 +1,164 @@
+"""The code-cloud NeuralSDF, NeuralShape frames, and the Model package round trip."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import zoo
+from zoo import neural
+from zoo.errors import ChecksumError, InputError, ModelNotFoundError
+from zoo.meshes import Similarity
+from zoo.model import Model, fit_code_cloud
+from zoo.neural import NeuralSDF, NeuralSDFConfig, NeuralShape, code_weights, interpolate_codes
+
+SMALL = NeuralSDFConfig(n_codes=16, code_dim=8, hidden=(16, 16))
+
+
+def small_model(n_shapes=2, seed=0) -> NeuralSDF:
+    torch.manual_seed(seed)
+    return NeuralSDF(SMALL, n_shapes, torch.Generator().manual_seed(seed))
+
+
+def rotation_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+SIM = Similarity(2.5, rotation_z(0.7), np.array([0.1, -0.2, 0.05]))
+
+
+def test_weights_are_finite_and_pick_the_code_at_its_position():
+    pos = torch.rand(1, 16, 3) - 0.5
+    codes = torch.randn(1, 16, 8)
+    pts = torch.cat([pos[:, :3], torch.rand(1, 5, 3) - 0.5], dim=1)  # three points exactly on codes
+    w = code_weights(pts, pos, eps=1e-16)
+    assert torch.isfinite(w).all()
+    assert torch.allclose(w.sum(-1), torch.ones(1, 8))
+    z = interpolate_codes(pts, pos, codes, eps=1e-16)
+    assert torch.allclose(z[0, :3], codes[0, :3], atol=1e-5)
+
+
+def test_weights_match_inverse_distance_cubed():
+    pos = torch.rand(1, 16, 3, dtype=torch.float64) - 0.5
+    pts = torch.rand(1, 10, 3, dtype=torch.float64) - 0.5
+    d2 = ((pts[0, :, None] - pos[0, None]) ** 2).sum(-1)
+    w = d2 ** -1.5
+    w = w / w.sum(-1, keepdim=True)
+    assert torch.allclose(code_weights(pts, pos, eps=1e-16)[0], w, rtol=1e-6)
+
+
+def test_batched_forward_matches_each_shape():
+    m = small_model(3)
+    pts = torch.rand(3, 50, 3) - 0.5
+    d = m(pts, torch.arange(3))
+    for i in range(3):
+        s = NeuralShape(f"s{i}", m.decoder, SMALL, m.codes[i], m.positions[i])
+        assert torch.allclose(s(pts[i]), d[i].detach(), atol=1e-6)
+
+
+def test_source_frame_scales_distances_and_rotates_gradients():
+    m = small_model(1)
+    src = NeuralShape("a", m.decoder, SMALL, m.codes[0], m.positions[0], SIM)
+    p = torch.rand(64, 3, dtype=torch.float64) * 0.3
+    d, g = src.value_and_grad(p)
+    pn = torch.as_tensor(SIM.to_normalised(p.numpy()))
+    dn, gn = src.normalised.value_and_grad(pn)
+    assert torch.allclose(d, dn / SIM.scale, atol=1e-10)
+    assert torch.allclose(g, gn @ torch.as_tensor(SIM.rotation), atol=1e-10)
+    # finite differences in the source frame
+    h = 1e-6
+    for axis in range(3):
+        e = torch.zeros(3, dtype=torch.float64)
+        e[axis] = h
+        fd = (src(p + e) - src(p - e)) / (2 * h)
+        assert torch.allclose(fd, g[:, axis], atol=1e-5)
+
+
+def test_dtypes_are_kept_and_bad_input_rejected():
+    m = small_model(1)
+    s = NeuralShape("a", m.decoder, SMALL, m.codes[0], m.positions[0], SIM)
+    assert s(torch.zeros(4, 3)).dtype == torch.float32
+    assert s(torch.zeros(4, 3, dtype=torch.float64)).dtype == torch.float64
+    with pytest.raises(InputError):
+        s(torch.zeros(4, 2))
+    with pytest.raises(InputError):
+        s(torch.full((2, 3), float("nan")))
+
+
+def test_large_inputs_are_chunked(monkeypatch):
+    m = small_model(1)
+    s = NeuralShape("a", m.decoder, SMALL, m.codes[0], m.positions[0], SIM)
+    p = torch.rand(3000, 3) - 0.5
+    whole, whole_g = s(p), s.value_and_grad(p)[1]
+    monkeypatch.setattr(neural, "_CHUNK_ELEMENTS", 16 * 100)  # force chunks of 1024 points
+    assert neural.chunk_size(16) == 1024
+    assert torch.allclose(s(p), whole, atol=1e-6)
+    assert torch.allclose(s.value_and_grad(p)[1], whole_g, atol=1e-6)
+
+
+def test_features_and_differentiable_call():
+    m = small_model(1)
+    s = NeuralShape("a", m.decoder, SMALL, m.codes[0], m.positions[0], SIM)
+    assert s.features(torch.rand(10, 3) - 0.5).shape == (10, 8)
+    p = torch.rand(5, 3, requires_grad=True)
+    s(p).sum().backward()  # the graph is kept when the caller asks for it
+    assert p.grad is not None and torch.isfinite(p.grad).all()
+    assert isinstance(s, zoo.sdf.SDFBase) and len(s.bounds) == 2
+
+
+def make_model(tmp_path=None) -> Model:
+    sdf = small_model(2)
+    return Model("toys", "0.0.1", sdf, ["toy_a", "toy_b"], {"toy_a": SIM, "toy_b": Similarity.identity()},
+                 {"category": "toys"})
+
+
+@pytest.mark.parametrize("fp16", [False, True])
+def test_package_round_trip(tmp_path, fp16):
+    model = make_model()
+    out = model.save(tmp_path / "pkg", fp16=fp16, metrics={"near_p50": 0.004}, license="MIT")
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["SHA256SUMS", "config.json", "sdf.safetensors"]
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["format_version"] == 1 and cfg["shapes"] == ["toy_a", "toy_b"] and cfg["detector"] is None
+    loaded = Model.from_directory(out)
+    assert (loaded.name, loaded.version, loaded.shapes) == ("toys", "0.0.1", ["toy_a", "toy_b"])
+    assert loaded.sdf.codes.dtype == torch.float32
+    p = torch.rand(100, 3) * 0.2
+    tol = 1e-3 if fp16 else 1e-6
+    assert torch.allclose(loaded.shape("toy_a")(p), model.shape("toy_a")(p), atol=tol)
+    assert loaded.shape("toy_a").similarity == SIM
+    assert zoo.load(out).shapes == ["toy_a", "toy_b"]
+
+
+def test_unknown_shape_missing_detector_and_corruption(tmp_path):
+    model = make_model()
+    out = model.save(tmp_path / "pkg")
+    with pytest.raises(ModelNotFoundError, match="toy_a"):
+        model.shape("nope")
+    with pytest.raises(ModelNotFoundError, match="no detector"):
+        model.detect(model.shape("toy_a"), torch.rand(2, 3, 3))
+    data = bytearray((out / "sdf.safetensors").read_bytes())
+    data[-1] ^= 0xFF
+    (out / "sdf.safetensors").write_bytes(bytes(data))
+    with pytest.raises(ChecksumError):
+        Model.from_directory(out)
+
+
+def test_fit_code_cloud_recovers_a_shape_of_the_model():
+    """Samples drawn from shape 0 of a model; a fresh cloud with the decoder frozen fits them."""
+    torch.manual_seed(0)
+    m = small_model(1)
+    pts = torch.rand(4000, 3) - 0.5
+    with torch.no_grad():
+        target = m(pts.unsqueeze(0), torch.tensor([0]))[0]
+    fresh = NeuralShape("f", m.decoder, SMALL, *neural.init_code_cloud(SMALL, 1, torch.Generator().manual_seed(5)))
+    fresh = NeuralShape("f", m.decoder, SMALL, fresh.codes[0], fresh.positions[0])
+    before = (fresh(pts) - target).abs().mean()
+    codes, positions = fit_code_cloud(m, pts, target, iters=60, points_per_iter=256)
+    after = (NeuralShape("f", m.decoder, SMALL, codes, positions)(pts) - target).abs().mean()
+    assert after < 0.5 * before
+    assert all(p.requires_grad for p in m.decoder.parameters())  # restored after fitting
