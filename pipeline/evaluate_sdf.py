@@ -176,3 +176,33 @@ def evaluate_train(model, category: str, data_dir=None, stems: list[str] | None 
             m = per_shape[stem]
             log(f"{stem}: p50 {100 * m['near_p50']:.3f}% p90 {100 * m['near_p90']:.3f}% sign {100 * m['sign_agreement']:.2f}%")
     return {"summary": summarise(per_shape), "per_shape": per_shape}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m pipeline.evaluate_sdf MODEL CATEGORY --test S1,S2 [--train S3,S4] --out FILE``."""
+    import argparse
+    import json
+
+    import zoo
+    from zoo.files import atomic_write_text
+
+    parser = argparse.ArgumentParser(description="SDF accuracy of a model in source frames: unseen shapes after fit_codes, train shapes.")
+    parser.add_argument("model", help="NAME[@X.Y.Z] or a package directory")
+    parser.add_argument("category", help="category manifest the stems come from (needs $ZOO_DATA)")
+    parser.add_argument("--test", default="", help="comma-separated unseen stems: fit_codes, then evaluate")
+    parser.add_argument("--train", default="", help="comma-separated train stems to evaluate")
+    parser.add_argument("--out", required=True, help="JSON file to write")
+    args = parser.parse_args(argv)
+    model = zoo.load(args.model)
+    report = {"model": args.model, "category": args.category}
+    for split, stems, run in (("test", args.test, evaluate_unseen), ("train", args.train, evaluate_train)):
+        stems = [s for s in stems.split(",") if s]
+        if stems:
+            config = EvalConfig(n_near=10_000, n_uniform=10_000, chamfer_resolution=48 if split == "train" else 0)
+            report[split] = run(model, args.category, None, stems, config=config, log=lambda s: print(split, s, flush=True))
+            print(split, json.dumps(report[split]["summary"]), flush=True)
+    atomic_write_text(args.out, json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()

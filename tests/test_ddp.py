@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.fit_sdf import FitConfig, fit_sdf, load_training_data
+from pipeline.fit_sdf import FitConfig, fit_sdf, load_training_data, preset
 from pipeline.samples import ShapeSamples, write_samples
 from zoo.meshes import Similarity
 
@@ -46,7 +46,8 @@ def test_two_processes_agree_with_one(tmp_path):
     two = subprocess.run([*torchrun(), "--standalone", "--nproc_per_node", "2", *common, "--out", str(tmp_path / "two.pt")],
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert two.returncode == 0, two.stderr[-3000:]
-    one = fit_sdf(load_training_data(files), FitConfig.from_dict(CONFIG), progress=False)  # the same run, one process
+    config = FitConfig.from_dict({**preset("quick").to_dict(), **CONFIG})  # as pipeline.fit_sdf's main builds it
+    one = fit_sdf(load_training_data(files), config, progress=False)  # the same run, one process
     a = {"history": one.history, "model": one.model.state_dict()}
     b = torch.load(tmp_path / "two.pt", weights_only=False)
     losses_a = [loss for _, loss in a["history"]]
