@@ -348,14 +348,9 @@ def sparsemax(scores: torch.Tensor) -> torch.Tensor:
     Differentiable almost everywhere (autograd through sort, cumsum and clamp gives the sparsemax
     Jacobian); rows are non-negative and sum to 1.
     """
-    k = scores.shape[-1]
-    z = scores - scores.amax(dim=-1, keepdim=True)  # shift-invariant; keeps values small
-    u = z.sort(dim=-1, descending=True).values
-    css = u.cumsum(dim=-1) - 1.0
-    r = torch.arange(1, k + 1, dtype=z.dtype, device=z.device)
-    support = (u - css / r > 0).sum(dim=-1, keepdim=True).clamp_min(1)
-    tau = css.gather(-1, support - 1) / support.to(z.dtype)
-    return (z - tau).clamp_min(0)
+    from .solvers import project_to_simplex
+
+    return project_to_simplex(scores - scores.amax(dim=-1, keepdim=True))  # shift-invariant; keeps values small
 
 
 # =========================================================================== detect
