@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> None:
     for split, stems, run in (("test", args.test, evaluate_unseen), ("train", args.train, evaluate_train)):
         stems = [s for s in stems.split(",") if s]
         if stems:
-            config = EvalConfig(n_near=10_000, n_uniform=10_000, chamfer_resolution=48 if split == "train" else 0)
+            config = EvalConfig(n_near=10_000, n_uniform=10_000, chamfer_resolution=48)
             report[split] = run(model, args.category, None, stems, config=config, log=lambda s: print(split, s, flush=True))
             print(split, json.dumps(report[split]["summary"]), flush=True)
     atomic_write_text(args.out, json.dumps(report, indent=1))
