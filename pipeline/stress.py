@@ -122,7 +122,7 @@ def _tiny(ctx):
 def _huge(ctx):
     sdf = ctx["sdf"]
     tris = triangles_around(sdf, 64, 2.0, 0.0)
-    answers = solver_answers(sdf, tris, ctx.get("shape_sdf"))
+    answers = solver_answers(sdf, tris)  # the model's detector on huge triangles is its own case
     gaps = gap_summary(sdf, tris, answers)
     return "on the simplex; the baselines may stop far from the minimum on triangles 10x the object (reported)", gaps, all(on_simplex(b) for b in answers.values())
 
@@ -220,6 +220,48 @@ def _million(ctx):
     return "finite values and gradients, memory bounded", {"seconds": dt, "sdf": type(sdf).__name__}, ok
 
 
+@case("queries at code positions (model)")
+def _code_positions(ctx):
+    shape = ctx.get("shape_sdf")
+    if shape is None:
+        return "needs --model", "skipped: no model given", True
+    norm = shape.normalised
+    d, g = norm.value_and_grad(norm.positions.detach().reshape(-1, 3).float())
+    ok = bool(torch.isfinite(d).all() and torch.isfinite(g).all())
+    return "finite value and gradient exactly at every code position (inverse-distance weights)", {"points": int(d.numel())}, ok
+
+
+@case("softmax saturation (model)")
+def _saturation(ctx):
+    shape, model = ctx.get("shape_sdf"), ctx.get("model")
+    if shape is None or model is None or model.detector is None:
+        return "needs --model with a detector", "skipped: no detector", True
+    from zoo.detector import vertex_features
+
+    tris = triangles_around(shape.normalised, 256, 0.03, 0.02)
+    feats = vertex_features(shape, tris)
+    results = {}
+    for scale in (1.0, 1e3, 1e6):
+        with torch.no_grad():
+            bary = model.detector(tris, feats * scale)
+        results[f"features x{scale:g}"] = "on simplex" if on_simplex(bary) else "OFF simplex or NaN"
+    return "barycentrics stay finite on the simplex when the logits saturate", results, all(v == "on simplex" for v in results.values())
+
+
+@case("amortized on huge and penetrating triangles (model)")
+def _amortized_extremes(ctx):
+    shape, model = ctx.get("shape_sdf"), ctx.get("model")
+    if shape is None or model is None or model.detector is None:
+        return "needs --model with a detector", "skipped: no detector", True
+    sdf = shape.normalised
+    out = {}
+    for name, tris in (("huge", triangles_around(sdf, 32, 1.0, 0.0)), ("penetrating", triangles_around(sdf, 128, 0.04, -0.02))):
+        bary = model.detect(sdf, tris)
+        out[name] = {"on_simplex": on_simplex(bary), **gap_summary(sdf, tris, {"amortized": bary})["amortized"]}
+    ok = all(v["on_simplex"] for v in out.values())
+    return "on the simplex; gap to the global reference minimum reported (normalised units)", out, ok
+
+
 BAD_INPUTS = [
     ("NaN points", lambda s: s(torch.tensor([[float("nan"), 0.0, 0.0]]))),
     ("Inf triangles", lambda s: frank_wolfe(s, torch.full((1, 3, 3), float("inf")))),
@@ -264,7 +306,7 @@ def run_stress(out: str | Path = "out/stress.json", model: str | None = None, sh
     ctx = {"sdf": zoo.Torus(major=0.3, minor=0.1)}
     if model:
         m = zoo.load(model)
-        ctx["shape_sdf"] = m.shape(shape or m.shapes[0])
+        ctx["model"], ctx["shape_sdf"] = m, m.shape(shape or m.shapes[0])
     records = []
     for name, fn in CASES:
         t0 = time.perf_counter()
