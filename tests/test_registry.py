@@ -292,7 +292,7 @@ def test_import_zoo_loads_no_hub_hdf5_cli_or_pipeline():
 # --------------------------------------------------------------------------- the bundled releases
 
 # Models that must ship in zoo/pretrained (add "bottles" once it is packaged).
-BUNDLED = ("mugs", "bottles")
+BUNDLED = ("mugs", "bottles", "gears", "bolts")
 
 
 @pytest.fixture
