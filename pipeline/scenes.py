@@ -161,8 +161,10 @@ def _resolve_file(name: str, base_dir: Path) -> Path:
 def run_scene(scene: Scene) -> zoo.Contacts:
     """Collide the scene once; the time goes into ``scene.timings['collide_s']``."""
     t0 = time.perf_counter()
+    # trimesh stores float64; the SDF networks run 1.4-2x faster in float32, precise enough for contacts
+    mesh = (np.asarray(scene.mesh.vertices, dtype=np.float32), np.asarray(scene.mesh.faces))
     contacts = zoo.collide(
-        scene.sdf, scene.mesh, sdf_pose=scene.sdf_pose, mesh_pose=scene.mesh_pose,
+        scene.sdf, mesh, sdf_pose=scene.sdf_pose.astype(np.float32), mesh_pose=scene.mesh_pose.astype(np.float32),
         margin=scene.margin, method=scene.method, refine=scene.refine, iters=scene.iters,
     )
     scene.timings["collide_s"] = time.perf_counter() - t0
