@@ -34,6 +34,8 @@ from zoo.errors import DataError, InputError
 from zoo.files import atomic_path
 from zoo.neural import NeuralSDF, NeuralSDFConfig, count_parameters
 
+from .stages import reject_unknown_keys
+
 CODE_VERSION = "fit_sdf/1"
 
 
@@ -73,9 +75,7 @@ class FitConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "FitConfig":
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise InputError(f"unknown fit config keys {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
+        reject_unknown_keys(cls, d, "fit config")
         return cls(**d)
 
 

@@ -37,7 +37,7 @@ from zoo.meshes import (
 )
 
 from .normalise import read_normalised, run_normalise
-from .stages import Stage, run_stage
+from .stages import Stage, reject_unknown_keys, run_stage
 
 SCHEMA_VERSION = 1
 # Bump when samples would change for the same inputs and config (a new sdfzoo version does too).
@@ -63,9 +63,7 @@ class SampleConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SampleConfig":
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise InputError(f"unknown sample config keys {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
+        reject_unknown_keys(cls, d, "sample config")
         d = dict(d)
         for key in ("near_sigmas", "fractions"):
             if key in d:

@@ -113,3 +113,10 @@ def run_stage(stage: Stage, build: Callable[[], None], force: bool = False) -> b
     record["outputs"] = {label: sha256_file(path) for label, path in stage.outputs.items()}
     atomic_write_text(stage.lock, json.dumps(record, indent=1, sort_keys=True) + "\n")
     return True
+
+
+def reject_unknown_keys(config_class, d: dict, what: str) -> None:
+    """Raise InputError naming the keys of ``d`` that the dataclass ``config_class`` does not have."""
+    unknown = set(d) - set(config_class.__dataclass_fields__)
+    if unknown:
+        raise InputError(f"unknown {what} keys {sorted(unknown)}; known: {sorted(config_class.__dataclass_fields__)}")

@@ -62,6 +62,12 @@ def gap_summary(sdf, tris, answers: dict) -> dict:
     return out
 
 
+def baseline_gaps(sdf, tris) -> tuple[dict, bool]:
+    """FW-10 and PGD on ``tris``: their gap summaries, and whether every answer is on the simplex."""
+    answers = solver_answers(sdf, tris)
+    return gap_summary(sdf, tris, answers), all(on_simplex(b) for b in answers.values())
+
+
 def solver_answers(sdf, tris, detector_shape=None) -> dict[str, torch.Tensor]:
     answers = {"fw-10": frank_wolfe(sdf, tris, iters=10), "pgd": projected_gradient(sdf, tris)}
     if detector_shape is not None:
@@ -104,27 +110,24 @@ def _slivers(ctx):
     sdf = ctx["sdf"]
     tris = triangles_around(sdf, 256, 0.04, 0.01)
     tris[:, 2] = tris[:, 0] + 1e-6 * (tris[:, 2] - tris[:, 0]) + (tris[:, 1] - tris[:, 0]) * 0.5
-    answers = solver_answers(sdf, tris)
-    gaps = gap_summary(sdf, tris, answers)
-    return "on the simplex; median gap to the reference minimum below 1e-4", gaps, all(on_simplex(b) for b in answers.values()) and all(g["p50"] < 1e-4 for g in gaps.values())
+    gaps, simplex = baseline_gaps(sdf, tris)
+    return "on the simplex; median gap to the reference minimum below 1e-4", gaps, simplex and all(g["p50"] < 1e-4 for g in gaps.values())
 
 
 @case("tiny triangles")
 def _tiny(ctx):
     sdf = ctx["sdf"]
     tris = triangles_around(sdf, 256, 1e-6, 0.01)
-    answers = solver_answers(sdf, tris)
-    gaps = gap_summary(sdf, tris, answers)
-    return "on the simplex, at the reference minimum (1e-5)", gaps, all(on_simplex(b) for b in answers.values()) and all(g["max"] < 1e-5 for g in gaps.values())
+    gaps, simplex = baseline_gaps(sdf, tris)
+    return "on the simplex, at the reference minimum (1e-5)", gaps, simplex and all(g["max"] < 1e-5 for g in gaps.values())
 
 
 @case("huge triangles")
 def _huge(ctx):
     sdf = ctx["sdf"]
     tris = triangles_around(sdf, 64, 2.0, 0.0)
-    answers = solver_answers(sdf, tris)  # the model's detector on huge triangles is its own case
-    gaps = gap_summary(sdf, tris, answers)
-    return "on the simplex; the baselines may stop far from the minimum on triangles 10x the object (reported)", gaps, all(on_simplex(b) for b in answers.values())
+    gaps, simplex = baseline_gaps(sdf, tris)  # the model's detector on huge triangles is its own case
+    return "on the simplex; the baselines may stop far from the minimum on triangles 10x the object (reported)", gaps, simplex
 
 
 @case("far-away triangles")
@@ -169,9 +172,8 @@ def _tangent(ctx):
 def _curvature(ctx):
     torus = zoo.Torus(major=0.3, minor=0.002)
     tris = triangles_around(torus, 256, 0.03, 0.0)
-    answers = solver_answers(torus, tris)
-    gaps = gap_summary(torus, tris, answers)
-    return "finite, on simplex; gaps to the reference reported", gaps, all(on_simplex(b) for b in answers.values())
+    gaps, simplex = baseline_gaps(torus, tris)
+    return "finite, on simplex; gaps to the reference reported", gaps, simplex
 
 
 @case("zero gradient (medial axis)")
