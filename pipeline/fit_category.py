@@ -202,6 +202,7 @@ def stage_evaluate(run: FitRun) -> bool:
 
 def stage_package(run: FitRun) -> bool:
     """Write the package directory (config.json, sdf.safetensors, [detector.safetensors], SHA256SUMS)."""
+    _remove_temporaries(run.out_dir)
     model = run.model
     model.detector = run.detector.requires_grad_(False).eval() if run.detector is not None else None
     metrics = {"train": run.metrics.get("train", {}), "fit_seconds": model.config.get("fit_seconds"),
@@ -218,6 +219,15 @@ def stage_package(run: FitRun) -> bool:
         return False
     model.save(run.out_dir, **kwargs)
     return True
+
+
+def _remove_temporaries(out_dir: Path) -> None:
+    """Delete the atomic writers' temporaries (``.NAME.XXXX.tmp``) that a killed run left in the package
+    directory: never listed in SHA256SUMS nor released, but copied by anyone who uploads the folder."""
+    if out_dir.is_dir():
+        for p in out_dir.iterdir():
+            if p.is_file() and p.name.startswith(".") and p.name.endswith(".tmp"):
+                p.unlink(missing_ok=True)
 
 
 def _same_package(out_dir: Path, wanted: dict) -> bool:

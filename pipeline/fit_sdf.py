@@ -67,6 +67,9 @@ class FitConfig:
             raise InputError(f"loss must be 'l1' or 'mse', got {self.loss!r}")
         if min(self.steps, self.shapes_per_step, self.points_per_shape, self.checkpoint_every) < 1:
             raise InputError("steps, shapes_per_step, points_per_shape and checkpoint_every must be positive")
+        if not (0 < self.clamp < math.inf):
+            # unclamped, one huge target's squared error overflows float32 and the weights turn NaN
+            raise InputError(f"clamp must be a positive finite distance (0.1 is usual), got {self.clamp}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -129,15 +132,41 @@ def load_training_data(sample_files) -> TrainingData:
                          [s.similarity for s in shapes])
 
 
+# Samples live in the normalised frame, where shapes fill [-0.5, 0.5]^3. Points beyond this are
+# no samples of the shape (a unit or frame mix-up); near 1e19 their squared distances overflow
+# float32, and the code-cloud weights, the loss and every weight after the step become NaN.
+MAX_SAMPLE_COORDINATE = 1e6
+
+
 def stack_samples(stems, points_list, sdf_list, similarities=None) -> TrainingData:
-    """Pad per-shape arrays (N_s, 3), (N_s,) to (S, max N_s, ...) tensors."""
+    """Pad per-shape arrays (N_s, 3), (N_s,) to (S, max N_s, ...) tensors.
+
+    InputError for a shape with no samples, mismatched lengths, NaN or Inf, or points farther than
+    :data:`MAX_SAMPLE_COORDINATE` from the normalised frame's origin: one such sample would make
+    the loss NaN and poison every weight.
+    """
+    if not len(points_list) or len(points_list) != len(sdf_list) or len(points_list) != len(stems):
+        raise InputError(f"need one points and one sdf array per stem, got {len(stems)} stems, {len(points_list)} points "
+                         f"and {len(sdf_list)} sdf arrays")
+    points_list = [torch.as_tensor(p, dtype=torch.float32) for p in points_list]
+    sdf_list = [torch.as_tensor(d, dtype=torch.float32) for d in sdf_list]
+    for stem, p, d in zip(stems, points_list, sdf_list):
+        if p.ndim != 2 or p.shape[1:] != (3,) or d.shape != (len(p),) or len(p) == 0:
+            raise InputError(f"samples of {stem!r}: need points (N, 3) and sdf (N,) with N > 0, got "
+                             f"{tuple(p.shape)} and {tuple(d.shape)}; regenerate them (the samples stage)")
+        if not (torch.isfinite(p).all() and torch.isfinite(d).all()):
+            raise InputError(f"samples of {stem!r} hold NaN or Inf; regenerate them (delete the file, rerun the samples stage)")
+        if float(p.abs().max()) > MAX_SAMPLE_COORDINATE:
+            raise InputError(f"samples of {stem!r} reach {float(p.abs().max()):.3g} from the origin of the normalised "
+                             f"frame, where shapes fill [-0.5, 0.5]^3 (at most {MAX_SAMPLE_COORDINATE:g} is accepted); "
+                             "normalise the points first (pipeline.samples does)")
     n = max(len(p) for p in points_list)
     s = len(points_list)
     points = torch.zeros(s, n, 3)
     sdf = torch.zeros(s, n)
     for i, (p, d) in enumerate(zip(points_list, sdf_list)):
-        points[i, : len(p)] = torch.as_tensor(p, dtype=torch.float32)
-        sdf[i, : len(d)] = torch.as_tensor(d, dtype=torch.float32)
+        points[i, : len(p)] = p
+        sdf[i, : len(d)] = d
     counts = torch.tensor([len(p) for p in points_list])
     return TrainingData(list(stems), points, sdf, counts, list(similarities or [None] * s))
 

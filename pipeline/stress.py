@@ -242,10 +242,14 @@ def _saturation(ctx):
 
     tris = triangles_around(shape.normalised, 256, 0.03, 0.02)
     feats = vertex_features(shape, tris)
+    vertex_sdf = None
+    if model.detector.vertex_sdf:  # a detector that also reads the distance at each vertex
+        with torch.no_grad():
+            vertex_sdf = torch.as_tensor(shape.normalised(tris.reshape(-1, 3))).reshape(-1, 3).float()
     results = {}
     for scale in (1.0, 1e3, 1e6):
         with torch.no_grad():
-            bary = model.detector(tris, feats * scale)
+            bary = model.detector(tris, feats * scale, vertex_sdf)
         results[f"features x{scale:g}"] = "on simplex" if on_simplex(bary) else "OFF simplex or NaN"
     return "barycentrics stay finite on the simplex when the logits saturate", results, all(v == "on simplex" for v in results.values())
 
@@ -262,6 +266,139 @@ def _amortized_extremes(ctx):
         out[name] = {"on_simplex": on_simplex(bary), **gap_summary(sdf, tris, {"amortized": bary})["amortized"]}
     ok = all(v["on_simplex"] for v in out.values())
     return "on the simplex; gap to the global reference minimum reported (normalised units)", out, ok
+
+
+def _uniform(g: torch.Generator, n: int, half: float = 0.5) -> torch.Tensor:
+    return (torch.rand(n, 3, generator=g) * 2 - 1) * half
+
+
+def _fit_extremes() -> tuple[dict, bool]:
+    """A few NeuralSDF training steps (pipeline.fit_sdf.train_step, a tiny network) on each extreme
+    batch, with the presets' clamped L1 loss and with an unclamped MSE (clamp 1e9), whose gradients
+    grow with the targets."""
+    from dataclasses import replace
+
+    from pipeline.fit_sdf import FitConfig, make_optimizer, preset, stack_samples, train_step
+    from zoo.neural import NeuralSDF, NeuralSDFConfig
+
+    quick = preset("quick")
+    tiny = replace(quick, sdf=NeuralSDFConfig(n_codes=4, code_dim=4, hidden=(8, 8)), steps=3, shapes_per_step=2,
+                   points_per_shape=32, checkpoint_every=1000)
+    losses = {f"{quick.loss} clamped at {quick.clamp:g}": tiny, "mse clamped at 1e9": replace(tiny, loss="mse", clamp=1e9)}
+    g = torch.Generator().manual_seed(0)
+    near = _uniform(g, 64)
+    far = _uniform(g, 64, 1e6)  # a million object sizes away: distances far beyond the loss's clamp
+    batches = {
+        "batch of 1 (one shape, one point)": ([near[:1]], [torch.tensor([0.05])], dict(shapes_per_step=1, points_per_shape=1)),
+        "far points (1e6 away)": ([far, near], [far.norm(dim=-1), near.norm(dim=-1) - 0.3], {}),
+        "huge SDF targets (+-3e38)": ([near, near], [torch.full((64,), 3e38), torch.full((64,), -3e38)], {}),
+        "all points on one spot": ([torch.zeros(64, 3), near], [torch.zeros(64), near.norm(dim=-1) - 0.3], {}),
+    }
+    out, ok = {}, True
+    for name, (points, sdf, overrides) in batches.items():
+        data = stack_samples([f"s{i}" for i in range(len(points))], points, sdf)
+        for lname, config in losses.items():
+            config = replace(config, **overrides)
+            model = NeuralSDF(config.sdf, len(points), torch.Generator().manual_seed(0))
+            optimizer = make_optimizer(model, config)
+            values, norms = [], []
+            for step in range(config.steps):
+                values.append(train_step(model, model, optimizer, data, config, step, 0, 1, "cpu"))
+                norms.append(float(torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in model.parameters() if p.grad is not None]))))
+            finite = all(math.isfinite(x) for x in values + norms) and all(bool(torch.isfinite(p).all()) for p in model.parameters())
+            out[f"{name} / {lname}"] = {"losses": values, "max_grad_norm": max(norms), "finite": finite}
+            ok &= finite
+    # what no batch may hold, and a loss that could not stay finite: refused before they can poison the weights
+    refused = {
+        "NaN target": lambda: stack_samples(["bad"], [near], [torch.full((64,), float("nan"))]),
+        "a point at 1e20 (its squared distance overflows float32)": lambda: stack_samples(["bad"], [near * 1e20], [near.norm(dim=-1)]),
+        "no clamp (clamp=inf: a huge target's squared error overflows)": lambda: replace(tiny, loss="mse", clamp=float("inf")),
+    }
+    for name, call in refused.items():
+        try:
+            call()
+            out[f"refused: {name}"], ok = "accepted", False
+        except ZooError as exc:
+            out[f"refused: {name}"] = f"{type(exc).__name__}: {exc}"
+    return out, ok
+
+
+class _ClipRecorder:
+    """Records, for every ``torch.nn.utils.clip_grad_norm_`` call while active, the gradient norm
+    before clipping, the bound and the norm after it (the detector's training loop calls it by name)."""
+
+    def __enter__(self):
+        self.calls, self.original = [], torch.nn.utils.clip_grad_norm_
+
+        def recorder(parameters, max_norm, *args, **kwargs):
+            parameters = [p for p in parameters if p.grad is not None] if not isinstance(parameters, torch.Tensor) else [parameters]
+            before = self.original(parameters, max_norm, *args, **kwargs)
+            after = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in parameters])) if parameters else torch.zeros(())
+            self.calls.append((float(before), float(max_norm), float(after)))
+            return before
+
+        torch.nn.utils.clip_grad_norm_ = recorder
+        return self
+
+    def __exit__(self, *exc):
+        torch.nn.utils.clip_grad_norm_ = self.original
+        return False
+
+
+def _detector_extremes(sdf) -> tuple[dict, bool]:
+    """A few steps of pipeline.train_detector.train (tiny detectors, two losses) on each extreme batch."""
+    from dataclasses import replace
+
+    from pipeline.train_detector import TrainConfig, TrainingData, preset, train
+
+    def tiny(config):
+        return replace(config, steps=3, batch_size=8, validate_every=1000, validation_size=8, checkpoint_every=1000,
+                       detector={**config.detector, "feature_dim": 4, "hidden": 8, "weight_hidden": 4})
+
+    configs = {"quick preset": tiny(preset("quick")), "paper loss (L_op + L_min)": tiny(TrainConfig())}
+    g = torch.Generator().manual_seed(0)
+    normal = triangles_around(sdf, 8, 0.02, 0.01, seed=1)
+    equal2 = normal.clone()
+    equal2[:, 2] = equal2[:, 0]
+    batches = {
+        "batch of 1": normal[:1],
+        "degenerate (three equal vertices)": normal.mean(dim=1, keepdim=True).expand(-1, 3, -1).clone(),
+        "two equal vertices": equal2,
+        "tiny (edges 1e-9)": triangles_around(sdf, 8, 1e-9, 0.01, seed=2),
+        "huge coordinates (x1e6)": normal * 1e6,
+        "far away (1e6 off)": normal + 1e6,
+        "huge triangles (edges 1e3)": triangles_around(sdf, 8, 1e3, 0.0, seed=3),
+        "mixed: normal and x1e6": torch.cat([normal[:4], normal[4:] * 1e6]),
+    }
+    out, ok, clipped = {}, True, 0
+    for name, tri in batches.items():
+        n = tri.shape[0]
+        features = torch.randn(n, 3, 4, generator=g) * 0.05
+        with torch.no_grad():
+            vertex_sdf = torch.as_tensor(sdf(tri.reshape(-1, 3))).reshape(n, 3).float()
+        data = TrainingData(tri.float(), features, torch.zeros(n, dtype=torch.long), [sdf], vertex_sdf)
+        for cname, config in configs.items():
+            with _ClipRecorder() as clip:
+                detector, history = train(data, replace(config, batch_size=min(config.batch_size, n)), progress=False)
+            finite = all(math.isfinite(x) for x in history["loss"]) and all(bool(torch.isfinite(p).all()) for p in detector.parameters())
+            # a norm over the bound is clipped to it; a non-finite one leaves gradients that the loop must skip
+            held = all(after <= bound * (1 + 1e-4) for before, bound, after in clip.calls if math.isfinite(before) and before > bound)
+            clipped += sum(before > bound for before, bound, _ in clip.calls)
+            out[f"{name} / {cname}"] = {"losses": history["loss"], "max_grad_norm": max((c[0] for c in clip.calls), default=0.0),
+                                        "clipped_steps": sum(b > m for b, m, _ in clip.calls), "finite": finite, "clip_held": held}
+            ok &= finite and held and len(clip.calls) == config.steps
+    out["steps clipped in all"] = clipped
+    return out, ok
+
+
+@case("extreme training batches")
+def _extreme_training(ctx):
+    fit, fit_ok = _fit_extremes()
+    det, det_ok = _detector_extremes(ctx["sdf"])
+    return ("NeuralSDF and detector training (tiny networks, a few steps) on batches of 1, far points, huge targets, "
+            "degenerate, tiny and huge triangles: every loss, gradient norm and weight finite; a gradient norm over "
+            "grad_clip is clipped to it; samples with NaN or beyond float32's range refused with a ZooError"), \
+        {"fit-sdf": fit, "train-detector": det}, fit_ok and det_ok
 
 
 BAD_INPUTS = [

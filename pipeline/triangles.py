@@ -153,7 +153,8 @@ def sample_triangle_dataset(shapes, out_path, config: TriangleConfig = TriangleC
     """Write the labelled triangle dataset of ``shapes`` [(name, shape), ...] to ``out_path`` (HDF5).
 
     Resumes from per-shape chunk files in ``<out_path>.chunks/`` written by an interrupted run
-    with the same config; removes them once the merged file is in place.
+    with the same config, shape names and ``provenance`` (which should name the fit the shapes come
+    from); removes them once the merged file is in place.
     """
     h5py = require("h5py")
     shapes = list(shapes)
@@ -162,7 +163,7 @@ def sample_triangle_dataset(shapes, out_path, config: TriangleConfig = TriangleC
     out_path = Path(out_path)
     chunk_dir = out_path.with_name(out_path.name + ".chunks")
     names = [name for name, _ in shapes]
-    tag = _run_tag(names, config)
+    tag = _run_tag(names, config, provenance)
     chunks = []
     with _progress(progress, len(shapes)) as advance:
         for index, (name, shape) in enumerate(shapes):
@@ -209,9 +210,11 @@ def read_triangle_dataset(path) -> dict:
     return out
 
 
-def _run_tag(names: list[str], config: TriangleConfig) -> str:
-    """What a chunk must match to be reused: the config and the shape list (their order fixes the seeds)."""
-    blob = json.dumps({"config": config.to_dict(), "shapes": names, "schema": SCHEMA_VERSION}, sort_keys=True)
+def _run_tag(names: list[str], config: TriangleConfig, provenance: dict | None = None) -> str:
+    """What a chunk must match to be reused: the config, the shape list (their order fixes the seeds) and
+    the provenance, which names the fit the shapes come from (a chunk of another fit holds other labels)."""
+    blob = json.dumps({"config": config.to_dict(), "shapes": names, "schema": SCHEMA_VERSION,
+                       **({"provenance": provenance} if provenance else {})}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
@@ -253,6 +256,15 @@ def _merge_chunks(h5py, chunks: list[Path], out_path: Path, names: list[str], me
             g.create_dataset("rows", data=np.concatenate([p[1]["rows"] + o for p, o in zip(parts, offsets[:-1])]))
             for k in ("bary", "min_sdf"):
                 g.create_dataset(k, data=np.concatenate([p[1][k] for p in parts]))
+
+
+def weights_sha256(module: torch.nn.Module) -> str:
+    """sha256 of a module's state (names and tensor bytes): the same weights give the same digest."""
+    h = hashlib.sha256()
+    for name, tensor in module.state_dict().items():
+        h.update(name.encode())
+        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
 
 
 def _version() -> str:
@@ -346,8 +358,10 @@ def stage_sample_triangles(run) -> bool:
 
     def build():
         shapes = [(s, run.model.shape(s)) for s in run.stems]
+        # the fitted weights' sha256 ties the per-shape chunks a killed run leaves to the fit they were labelled on
         sample_triangle_dataset(shapes, out, config, progress=run.progress,
-                                provenance={"category": run.category.name, "fit": str(run.fit_file)})
+                                provenance={"category": run.category.name, "fit": str(run.fit_file),
+                                            "fit_weights_sha256": weights_sha256(run.model.sdf)})
 
     did = run_stage(stage, build)
     run.triangles_file = out

@@ -110,8 +110,36 @@ def test_measure_scene_gives_every_row_of_table_ii():
         assert r["n_contacts"] > 0
     assert rows["voxel-fw-512"]["grid_bytes_full"] == 512**3 * 4
     assert rows["voxel-fw-512"]["grid_samples_built"] < 512**3 / 20  # only the part the candidates reach is built
-    assert report["narrow_phase"]["ratio"] > 0
+    narrow = report["narrow_phase"]
+    assert narrow["ratio"] > 0 and narrow["detect_only_ratio"] > 0
+    assert narrow["detect_s"] == narrow["collide_phases_s"]["narrow"] and narrow["ratio"] == narrow["detect_s"] / narrow["value_and_grad_s"]
+    for r in rows.values():  # collide's phases and the time per candidate
+        assert set(r["phases_s"]) == {"broad", "narrow", "normals"}
+        assert r["per_candidate_ms"] == pytest.approx(1e3 * r["time_s"] / r["n_candidates"])
     json.dumps(report)  # JSON-ready
+
+
+def test_the_paper_scale_bolt_nut_scene_is_the_bolt_nut_scene_with_the_nut_raised_in_phase():
+    base = tomllib.loads((ROOT / "scenes" / "bolt-nut.toml").read_text())
+    start = tomllib.loads((ROOT / "scenes" / "bolt-nut-start.toml").read_text())
+    assert start["sdf"] == base["sdf"] and start["mesh"]["file"] == base["mesh"]["file"] and start["margin"] == base["margin"]
+    dz, turn = start["mesh"]["pose"]["translation"][2], start["mesh"]["pose"]["rotation_deg"][2]
+    pitch = 0.002  # M16 coarse thread
+    turns = dz / pitch - turn / 360
+    assert turns == pytest.approx(round(turns), abs=1e-9) and round(turns) > 0  # raised by whole turns of the helix
+    assert bench_scenes.PAPER_TABLE_II["bolt-nut-start"] == bench_scenes.PAPER_TABLE_II["bolt-nut"]
+
+
+def test_interleaved_timing_and_the_contact_checks_counts():
+    calls = []
+    seconds, results = bench_scenes.interleaved_seconds({"a": lambda: calls.append("a") or 1, "b": lambda: calls.append("b") or 2}, 3)
+    assert calls == ["a", "b"] * 4 and results == {"a": [1, 1, 1], "b": [2, 2, 2]} and set(seconds) == {"a", "b"}
+
+    class Found:
+        triangles = torch.tensor([1, 2, 3, 9])  # 9 is not counted (its centroid lies within the margin)
+
+    rp = bench_scenes.recall_precision(Found(), reference={1, 2, 4, 5}, counted={1, 2, 3, 4, 5})
+    assert rp["recall"] == 0.5 and rp["precision"] == pytest.approx(2 / 3) and rp["missed"] == [4, 5] and rp["extra"] == [3]
 
 
 def test_a_scene_without_its_model_runs_on_a_labelled_stand_in_or_says_why(monkeypatch):

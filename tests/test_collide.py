@@ -356,6 +356,49 @@ def test_refine_never_makes_the_amortized_answer_worse():
     assert float((rough.depths - refined.depths[common]).max()) > 1e-3
 
 
+def test_amortized_on_a_model_shape_hands_the_candidates_over_as_a_mesh():
+    # The bundled mugs model: collide gives detect_mesh the candidates as an indexed mesh and takes
+    # its distances as the depths. Against the plain path (detect, then a value pass): the same
+    # candidates, a superset of the contacts (the answer is kept only where no vertex or centroid
+    # is lower), depths that are the SDF's at the reported points, never above the plain ones.
+    shape = zoo.load("mugs").shape("hoi4d_mug_0001")
+    s = shape.similarity
+    g = np.random.default_rng(0)
+    vertices, faces = plane_grid(24, size=1.0)
+    vertices = vertices + np.array([0.0, 0.0, 0.05]) + 0.004 * g.normal(size=vertices.shape)  # edges ~0.04
+    vertices = s.to_source(vertices)  # a bumpy plane cutting the mug, in its frame
+    margin = 0.003 / s.scale
+    c = zoo.collide(shape, (vertices, faces), margin=margin, method="amortized")
+    assert set(c.timings) == {"broad", "narrow", "normals"} and all(t >= 0 for t in c.timings.values())
+
+    class Plain:  # the same shape without detect_mesh: collide's generic amortized path
+        bounds = shape.bounds
+        __call__ = staticmethod(shape.__call__)
+        value_and_grad = staticmethod(shape.value_and_grad)
+        detect = staticmethod(shape.detect)
+
+    p = zoo.collide(Plain(), (vertices, faces), margin=margin, method="amortized")
+    assert c.n_candidates == p.n_candidates and len(p) > 20
+    assert set(p.triangles.tolist()) <= set(c.triangles.tolist())
+    np.testing.assert_allclose(shape(c.points).numpy(), c.depths.numpy(), atol=1e-9 / s.scale)
+    common = torch.isin(c.triangles, p.triangles)
+    assert bool((c.depths[common] <= p.depths + 1e-9 / s.scale).all())
+    assert float((p.depths - c.depths[common]).max()) > 1e-4 / s.scale  # the vertex check matters here
+
+
+def test_a_detect_mesh_of_the_wrong_shape_is_a_typed_error():
+    class Broken(zoo.Sphere):
+        def detect(self, triangles):
+            return torch.full(triangles.shape[:2], 1 / 3, dtype=triangles.dtype)
+
+        def detect_mesh(self, vertices, faces, cutoff=None, known=None):
+            return torch.zeros(len(faces), 2), torch.zeros(len(faces))
+
+    vertices, faces = plane_grid(8)
+    with pytest.raises(InputError, match="detect_mesh returned"):
+        zoo.collide(Broken(**SPHERE), (vertices, faces), method="amortized", margin=0.05)
+
+
 # -- bad input ------------------------------------------------------------------------------
 
 

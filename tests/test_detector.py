@@ -16,12 +16,13 @@ from pipeline.train_detector import (
     TrainConfig,
     TrainingData,
     detector_losses,
+    midpoint_curvatures,
     load_detector,
     save_detector,
     train,
 )
 from pipeline.triangle_sampling import sample_constrained_triangles
-from zoo.detector import AmortizedDetector, detect, subdivision_barycentrics
+from zoo.detector import AmortizedDetector, detect, quadratic_argmin, subdivision_barycentrics
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, perimeter
 from zoo.meshes import Similarity
@@ -111,7 +112,7 @@ def test_every_vertex_order_gives_the_same_point(mode):
             assert torch.allclose(bary_to_points(tri[:, perm], bary), p0, atol=1e-6), perm
 
 
-@pytest.mark.parametrize("output", ["sparsemax", "grid"])
+@pytest.mark.parametrize("output", ["sparsemax", "grid", "quadratic"])
 def test_other_outputs_are_order_invariant_and_on_the_simplex(output):
     torch.manual_seed(1)
     det = AmortizedDetector(output=output, vertex_sdf=True)
@@ -233,6 +234,76 @@ def test_optimality_loss_reaches_the_detector_through_the_sdf_gradient(torus_dat
 
 
 # --------------------------------------------------------------------------- training and use
+
+
+# --------------------------------------------------------------------------- the quadratic head
+
+
+def brute_force_quadratic_min(values, curvature, n=240):
+    """min over an n-step barycentric grid of q(l) = sum l_i f_i - sum_k l_i l_j kappa_k: (M,)."""
+    grid = torch.tensor([(i / n, j / n, (n - i - j) / n) for i in range(n + 1) for j in range(n + 1 - i)], dtype=values.dtype)
+    g0, g1, g2 = grid.unbind(-1)
+    q = values @ grid.T - curvature[:, :1] * (g1 * g2) - curvature[:, 1:2] * (g2 * g0) - curvature[:, 2:] * (g0 * g1)
+    return q.min(dim=1).values
+
+
+def quadratic_value(bary, values, curvature):
+    l0, l1, l2 = bary.unbind(-1)
+    k0, k1, k2 = curvature.unbind(-1)
+    return (bary * values).sum(-1) - l1 * l2 * k0 - l2 * l0 * k1 - l0 * l1 * k2
+
+
+def test_quadratic_argmin_is_the_minimum_of_a_dense_grid_search():
+    g = torch.Generator().manual_seed(5)
+    values = torch.randn(3000, 3, generator=g, dtype=torch.float64)
+    curvature = 4 * torch.randn(3000, 3, generator=g, dtype=torch.float64)  # bending up, down and mixed
+    curvature[:1000] = curvature[:1000].abs()
+    bary = quadratic_argmin(values, curvature)
+    assert (bary >= 0).all() and torch.allclose(bary.sum(-1), torch.ones(3000, dtype=torch.float64))
+    ours = quadratic_value(bary, values, curvature)
+    grid = brute_force_quadratic_min(values, curvature)
+    assert (ours <= grid + 1e-12).all()  # never above the grid's best
+    assert (grid - ours).max() < 1e-3  # and the grid comes close to it: the same minimum
+
+
+def test_exact_curvatures_solve_a_quadratic_sdf_exactly():
+    # |x - c|^2 is quadratic, so its vertex values and midpoint curvatures define it on every triangle, and
+    # its minimum on a triangle is the triangle's closest point to c: the exact minimum of a sphere's SDF
+    c = torch.tensor([0.05, -0.02, 0.1], dtype=torch.float64)
+    squared = lambda x: ((x - c) ** 2).sum(-1)  # noqa: E731
+    g = torch.Generator().manual_seed(6)
+    tri = c + 0.3 * (torch.rand(400, 3, 3, generator=g, dtype=torch.float64) - 0.5)
+    bary = quadratic_argmin(squared(tri.reshape(-1, 3)).reshape(-1, 3), midpoint_curvatures(squared, tri))
+    ref = reference(zoo.Sphere(0.01, c), tri, resolution=64)
+    gap = (bary_to_points(tri, bary) - c).norm(dim=-1) - (bary_to_points(tri, ref) - c).norm(dim=-1)
+    assert gap.max() < 1e-9
+
+
+def test_curvature_training_beats_the_best_vertex_on_held_out_triangles(torus_data):
+    torch.set_num_threads(1)
+    shape, tri, feat = torus_data
+    sdf = shape.normalised
+    data = TrainingData(tri[:2560], feat[:2560], torch.zeros(2560, dtype=torch.long), [sdf], vertex_sdf_of(sdf, tri[:2560]))
+    detector_config = {**AmortizedDetector().config(), "output": "quadratic", "vertex_sdf": True, "hidden": 64}
+    config = TrainConfig(steps=300, batch_size=512, lr=3e-3, validate_every=300, checkpoint_every=300, validation_size=256,
+                         detector=detector_config, lambda_curvature=1.0, use_op_loss=False, use_min_loss=False)
+    detector, history = train(data, config, progress=False)
+    assert history["loss"][-1] < 0.5 * history["loss"][0]
+    test_tri, test_feat = tri[2560:], feat[2560:]
+    with torch.no_grad():
+        pred = detector(test_tri, test_feat, vertex_sdf_of(sdf, test_tri))
+    vertex_f = vertex_sdf_of(sdf, test_tri)
+    best_vertex = torch.nn.functional.one_hot(vertex_f.argmin(-1), 3).float()
+    assert optimality(sdf, test_tri, pred).mean() < 0.7 * optimality(sdf, test_tri, best_vertex).mean()
+
+
+def test_quadratic_head_needs_vertex_values_and_curvature_loss_needs_the_head():
+    with pytest.raises(InputError, match="vertex_sdf=True"):
+        AmortizedDetector(output="quadratic")
+    tri, feat = random_inputs(m=8)
+    data = TrainingData(tri, feat, torch.zeros(8, dtype=torch.long), [zoo.Sphere(0.2)])
+    with pytest.raises(InputError, match="quadratic"):
+        train(data, TrainConfig(steps=1, lambda_curvature=1.0), progress=False)
 
 
 def test_short_training_beats_the_centroid_and_the_best_vertex(torus_data, trained):

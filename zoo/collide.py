@@ -17,6 +17,14 @@ paper), and reports it as a contact:
    value-and-gradient pass over the contacts); all in the SDF's frame, mapped to the world by
    ``sdf_pose``.
 
+``method="amortized"`` on a shape that offers ``detect_mesh(vertices, faces, cutoff, known)``
+(a model's NeuralShape) hands it the candidates as an indexed mesh: features and distances are
+computed once per distinct vertex, the network's answer is compared with the vertices and with
+the centroid the broad phase evaluated (keeping the lowest), triangles and subdivision cells
+proven to stay above the margin are not solved, and the distances it returns at its answers
+are the depths (no second value pass). Any other SDF with a ``detect(triangles)`` gets step 3
+and 4 as written.
+
 Every method evaluates the contact points on the true SDF except ``"voxel-fw"``, which, like a
 simulator that only holds the voxel grid, solves and reports on the grid's interpolant. The
 broad phase always uses the given SDF, so every method sees the same candidate triangles.
@@ -28,7 +36,8 @@ other: their minimum lies on a segment or a point, which every solver handles.
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 
 import torch
 
@@ -64,6 +73,8 @@ class Contacts:
         n_triangles: number of faces in the mesh.
         n_candidates: number of triangles that survived the broad phase.
         method: the narrow-phase method that produced the contacts.
+        timings: wall-clock seconds of the call's phases: ``broad`` (pose, bounds and centroid
+            cull), ``narrow`` (the method, refine steps and the depths) and ``normals``.
     """
 
     points: torch.Tensor
@@ -74,6 +85,7 @@ class Contacts:
     n_triangles: int = 0
     n_candidates: int = 0
     method: str = "fw"
+    timings: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.depths.shape[0])
@@ -146,8 +158,13 @@ def _survives_sdf_cull(sdf, tri: torch.Tensor, margin: float) -> torch.Tensor:
 
 def _ball_may_touch(sdf, tri: torch.Tensor, margin: float) -> torch.Tensor:
     """(N, 3, 3) -> (N,) bool: f(centroid) <= bounding_radius + margin, up to rounding."""
+    return _centroid_cull(sdf, tri, margin)[0]
+
+
+def _centroid_cull(sdf, tri: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 3, 3) -> (may touch (N,) bool, f(centroid) (N,)): the cull and the distances it evaluated."""
     if tri.shape[0] == 0:
-        return torch.zeros(0, dtype=torch.bool, device=tri.device)
+        return torch.zeros(0, dtype=torch.bool, device=tri.device), tri.new_zeros((0,))
     c = centroid(tri)
     with torch.no_grad():
         f_c = torch.as_tensor(sdf(c)).reshape(-1).to(tri)
@@ -155,7 +172,7 @@ def _ball_may_touch(sdf, tri: torch.Tensor, margin: float) -> torch.Tensor:
     # f(c) is rounded to the dtype; keep triangles within a few ulps of the threshold so the
     # cull never drops one that the exact arithmetic would keep.
     slack = 16 * torch.finfo(tri.dtype).eps * (f_c.abs() + reach + c.abs().amax(dim=-1))
-    return f_c <= reach + slack
+    return f_c <= reach + slack, f_c
 
 
 # -- collide --------------------------------------------------------------------------------
@@ -212,24 +229,35 @@ def collide(
     sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(vertices.device)
     mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(vertices.device)
 
+    t0 = time.perf_counter()
     sdf_from_mesh = (invert_pose(sdf_pose) @ mesh_pose).to(vertices.dtype)
     local = transform_points(sdf_from_mesh, vertices)  # (V, 3) in the SDF's frame
     # The broad phase as candidate_triangles, without building or re-validating all F triangles.
     candidates = _faces_near_bounds(sdf, local, faces, margin)
     tri = local[faces[candidates]]  # (N, 3, 3)
+    f_centroid = None
     if candidates.numel():
-        survives = _survives_sdf_cull(sdf, tri, margin)
-        candidates, tri = candidates[survives], tri[survives]
+        survives, f_centroid = _centroid_cull(sdf, tri, margin)
+        candidates, tri, f_centroid = candidates[survives], tri[survives], f_centroid[survives]
+    t1 = time.perf_counter()
     if candidates.numel() == 0:
-        return _empty_contacts(local, faces.shape[0], method)
+        empty = _empty_contacts(local, faces.shape[0], method)
+        empty.timings = {"broad": t1 - t0, "narrow": 0.0, "normals": 0.0}
+        return empty
     solve_sdf = _voxel_of(sdf, voxel_resolution) if method == "voxel-fw" else sdf
     with torch.no_grad():
-        bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
+        depths = None
+        if method == "amortized" and callable(getattr(sdf, "detect_mesh", None)):
+            bary, depths = _amortized_mesh(sdf, local, faces[candidates], tri, f_centroid, margin)
+        else:
+            bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
         if refine:
-            bary = _solvers().frank_wolfe(solve_sdf, tri, iters=refine, init=bary)
+            bary, depths = _solvers().frank_wolfe(solve_sdf, tri, iters=refine, init=bary), None
         points = bary_to_points(tri, bary)
-        depths = torch.as_tensor(solve_sdf(points)).reshape(-1).to(tri)
+        if depths is None:
+            depths = torch.as_tensor(solve_sdf(points)).reshape(-1).to(tri)
     keep = depths <= margin
+    t2 = time.perf_counter()
     normals = _contact_normals(solve_sdf, points[keep])  # gradients only where there is a contact
     world = sdf_pose.to(tri.dtype)
     return Contacts(
@@ -241,7 +269,22 @@ def collide(
         n_triangles=int(faces.shape[0]),
         n_candidates=int(candidates.numel()),
         method=method,
+        timings={"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2},
     )
+
+
+def _amortized_mesh(sdf, local: torch.Tensor, faces: torch.Tensor, tri: torch.Tensor, f_centroid: torch.Tensor,
+                    margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The amortized narrow phase on the candidates as an indexed mesh: (bary (C, 3), depths (C,))."""
+    known = (torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype, device=tri.device), f_centroid)
+    bary, depths = sdf.detect_mesh(local, faces, cutoff=margin, known=known)
+    bary, depths = torch.as_tensor(bary).to(tri), torch.as_tensor(depths).reshape(-1).to(tri)
+    if bary.shape != tri.shape[:2] or depths.shape != tri.shape[:1] or not bool(torch.isfinite(bary).all()):
+        raise InputError(
+            f"{type(sdf).__name__}.detect_mesh returned {tuple(bary.shape)} barycentrics (or non-finite values) for "
+            f"{tri.shape[0]} triangles; it must return finite barycentrics (M, 3) and distances (M,)"
+        )
+    return bary, depths
 
 
 def _contact_normals(sdf, points: torch.Tensor) -> torch.Tensor:

@@ -29,7 +29,12 @@ common shift, so z_tri would have no effect. ``triangle_feature`` chooses how it
 ``vertex_features=False`` zeroes z_i (the ablation "without vertex features").
 ``vertex_sdf=True`` also feeds f(v_i) (three SDF queries per triangle, no gradients) to h_psi1.
 ``output``: ``"softmax"`` (the paper's), ``"sparsemax"`` (reaches vertices and edges exactly),
-or ``"grid"`` (vertex scores plus a per-edge curvature term, soft arg-max over a barycentric grid).
+``"grid"`` (vertex scores plus a per-edge curvature term, soft arg-max over a barycentric grid), or
+``"quadratic"`` (needs ``vertex_sdf``): the SDF on the triangle is modelled as the quadratic that
+takes the three vertex values f_i and bends along each edge by a learned curvature kappa_k,
+q(l) = sum_i l_i f_i - sum_k l_i l_j kappa_k (exact for a quadratic SDF), and the answer is its exact
+minimum over the triangle (:func:`quadratic_argmin`). The vertex values make the vertex choice exact
+(80% of minima lie at a vertex); the network only has to say how much each edge bends.
 Features are standardised by fixed statistics of the training set (buffers saved with the weights).
 
 Every per-vertex network is shared across the three vertices and every pooling is symmetric
@@ -54,7 +59,7 @@ TRIANGLE_FEATURE_MODES = ("condition", "context", "temperature", "additive", "no
 # grid: the vertex scores plus a learned per-edge curvature term define a quadratic score over
 # the triangle, and the answer is its soft arg-max over a barycentric grid (edge minima, where
 # a per-vertex softmax must balance two logits just so, come out of one edge term).
-OUTPUTS = ("softmax", "sparsemax", "grid")
+OUTPUTS = ("softmax", "sparsemax", "grid", "quadratic")
 _GRID_RESOLUTION = 24  # grid steps per edge: 325 candidate points per triangle
 # the edge (i, j) of each pair slot; slot k is the edge opposite vertex k
 _PAIRS = ((1, 2), (2, 0), (0, 1))
@@ -67,6 +72,9 @@ DEFAULT_EDGE_RANGE = (0.03, 0.08)
 _MIN_TEMPERATURE_SCALE = 0.05
 # offsets are ~0.3 per perimeter; this gain lets an O(1) direction give logit gaps of several units.
 _DIRECTION_GAIN = 10.0
+# Edge curvatures per perimeter of SDFs near a surface are ~0.02 (mugs, the torus); starting the
+# head there rather than at softplus(0) = 0.7 saves most of a short training run.
+_INITIAL_CURVATURE_LOGIT = -4.0
 # A perimeter floor that keeps degenerate (zero-size) triangles finite.
 _TINY_LENGTH = 1e-12
 
@@ -124,6 +132,15 @@ class AmortizedDetector(nn.Module):
         self.register_buffer("feature_std", torch.ones(c))
         self.register_buffer("feature_within_std", torch.ones(c))
         self.g_phi = _mlp([3, self.weight_hidden, 1])
+        if self.output == "quadratic":
+            if not self.vertex_sdf:
+                raise InputError("output='quadratic' models the SDF from its vertex values: build it with vertex_sdf=True")
+            # the whole network: g_phi for z_tri, and one curvature per edge from
+            # [z_i + z_j; |dz_i - dz_j|; z_tri; length; the vertex values], symmetric in the edge's ends
+            self.h_edge = _mlp([3 * c + 4, self.hidden, self.hidden, 1])
+            with torch.no_grad():  # start near typical curvatures (softplus(-4) = 0.018 per perimeter), not 0.7
+                self.h_edge[-1].bias.fill_(_INITIAL_CURVATURE_LOGIT)
+            return
         self.h_psi2 = _mlp([c, self.hidden, self.hidden, 1])
         if self.output == "grid":
             # per-edge curvature from both ends' features (symmetric in the two) and the edge's length
@@ -183,6 +200,8 @@ class AmortizedDetector(nn.Module):
         is needed only by a detector built with ``vertex_sdf=True``. Rows of the result are
         positive and sum to 1.
         """
+        if self.output == "quadratic":
+            return quadratic_argmin(vertex_sdf, self.edge_curvatures(triangles, features, vertex_sdf))
         if self.output == "grid":
             vertex, edge = self.scores(triangles, features, vertex_sdf)
             return grid_soft_argmax(vertex, edge, self.grid.to(vertex))
@@ -222,6 +241,28 @@ class AmortizedDetector(nn.Module):
             # (M, 3) + (M, 1): a common shift, a no-op under softmax (and on the grid, whose weights sum to 1)
             return y1 + self.h_psi2(self._standardised(z_tri)), edge
         return y1, edge
+
+    def edge_curvatures(self, triangles: torch.Tensor, features: torch.Tensor, vertex_sdf: torch.Tensor) -> torch.Tensor:
+        """Learned bending kappa (M, 3) of the SDF along each edge (slot k: the edge opposite vertex k), >= 0.
+
+        kappa_k = f_i + f_j - 2 f(midpoint) (times 2) for a quadratic SDF; it is scale-covariant
+        (the head predicts kappa / perimeter from scale-free inputs), so it transfers across sizes.
+        """
+        self._check_inputs(triangles, features, vertex_sdf)
+        z = features if self.vertex_features else torch.zeros_like(features)
+        perim = edge_lengths(triangles).sum(dim=-1).clamp_min(_TINY_LENGTH)  # (M,)
+        offset = (triangles - triangles.mean(dim=1, keepdim=True)) / perim[:, None, None]
+        zs = self._standardised(z)
+        dz = (z - z.mean(dim=1, keepdim=True)) / self.feature_within_std
+        zt = self._standardised(self.triangle_feature_vector(z, offset)).unsqueeze(1).expand(-1, 3, -1)
+        if self.triangle_feature == "none":  # the ablation "without z_tri"
+            zt = torch.zeros_like(zt)
+        i, j = [p[0] for p in _PAIRS], [p[1] for p in _PAIRS]
+        length = (triangles[:, i] - triangles[:, j]).norm(dim=-1) / perim[:, None]  # (M, 3)
+        f = vertex_sdf.to(triangles) / perim[:, None]  # (M, 3), scale-free
+        values = torch.stack([length, f[:, i] + f[:, j], (f[:, i] - f[:, j]).abs(), f - (f[:, i] + f[:, j]) / 2], dim=-1)
+        pair = torch.cat([zs[:, i] + zs[:, j], (dz[:, i] - dz[:, j]).abs(), zt, values], dim=-1)  # (M, 3, 3C + 4)
+        return perim[:, None] * F.softplus(self.h_edge(pair).squeeze(-1))
 
     def _edge_scores(self, z, triangles, perim, z_tri) -> torch.Tensor:
         """Per-edge curvature scores (M, 3) from [z_i + z_j; |dz_i - dz_j|; z_tri; |v_i - v_j| / p]."""
@@ -342,6 +383,45 @@ def grid_soft_argmax(vertex: torch.Tensor, edge: torch.Tensor, grid: torch.Tenso
     return torch.softmax(s, dim=-1) @ grid
 
 
+def quadratic_argmin(values: torch.Tensor, curvature: torch.Tensor) -> torch.Tensor:
+    """Exact minimiser (M, 3) over the triangle of q(l) = sum_i l_i f_i - sum_k l_i l_j kappa_k.
+
+    ``values`` f (M, 3) at the vertices, ``curvature`` kappa (M, 3) (slot k: edge (i, j) opposite
+    vertex k). For f(x) = a + b.x + x^T H x / 2 on the triangle, q is f itself with
+    kappa_k = (v_i - v_j)^T H (v_i - v_j) / 2. The minimum of a quadratic on a triangle is at a vertex,
+    at an edge's own minimum (a parabola, when it bends upwards) or at the interior stationary point
+    (when q is convex there): every candidate is computed in closed form and the lowest is kept.
+    Differentiable in kappa wherever the answer lies on an edge or inside.
+    """
+    m = values.shape[0]
+    eye = torch.eye(3, dtype=values.dtype, device=values.device)
+    cands, scores = [eye.expand(m, 3, 3)], [values]  # the vertices
+    for k, (i, j) in enumerate(_PAIRS):  # each edge's parabola t f_i + (1 - t) f_j - t (1 - t) kappa
+        kap, fi, fj = curvature[:, k], values[:, i], values[:, j]
+        bends = kap > 0
+        t = (0.5 - (fi - fj) / (2 * torch.where(bends, kap, torch.ones_like(kap)))).clamp(0, 1)
+        t = torch.where(bends, t, (fi < fj).to(t))  # straight or bending down: the lower end
+        cands.append((t[:, None] * eye[i] + (1 - t)[:, None] * eye[j]).unsqueeze(1))
+        scores.append((t * fi + (1 - t) * fj - t * (1 - t) * kap).unsqueeze(1))
+    # inside: l = (1 - a - b, a, b), grad q = 0 is a 2x2 system, a minimum where its matrix is positive definite
+    k0, k1, k2 = curvature.unbind(-1)
+    f0, f1, f2 = values.unbind(-1)
+    a11, a22, a12 = 2 * k2, 2 * k1, k1 + k2 - k0
+    det = a11 * a22 - a12 * a12
+    convex = (det > 0) & (a11 > 0)
+    r1, r2 = k2 - (f1 - f0), k1 - (f2 - f0)
+    safe = torch.where(convex, det, torch.ones_like(det))
+    a, b = (r1 * a22 - a12 * r2) / safe, (a11 * r2 - a12 * r1) / safe
+    inside = convex & (a > 0) & (b > 0) & (a + b < 1)
+    lam = torch.stack([1 - a - b, a, b], dim=-1)
+    lam = torch.where(inside[:, None], lam, torch.full_like(lam, 1 / 3))
+    q = (lam * values).sum(-1) - lam[:, 1] * lam[:, 2] * k0 - lam[:, 2] * lam[:, 0] * k1 - lam[:, 0] * lam[:, 1] * k2
+    cands.append(lam.unsqueeze(1))
+    scores.append(torch.where(inside, q, torch.full_like(q, math.inf)).unsqueeze(1))
+    best = torch.cat(scores, dim=1).argmin(dim=1)  # (M,) of 7 candidates
+    return torch.cat(cands, dim=1)[torch.arange(m, device=values.device), best]
+
+
 def sparsemax(scores: torch.Tensor) -> torch.Tensor:
     """Euclidean projection of each row of ``scores`` (M, K) onto the simplex (Martins & Astudillo 2016).
 
@@ -354,40 +434,84 @@ def sparsemax(scores: torch.Tensor) -> torch.Tensor:
 
 
 # =========================================================================== detect
+#
+# How detect() and solve_mesh() spend their time (the network is cheap next to the NeuralSDF's
+# decoder, so the count of SDF queries is what matters):
+#
+# * every distinct vertex is evaluated once (features, and distances where they are needed):
+#   a mesh shares each vertex among about six triangles;
+# * triangles longer than the trained range are solved on the pieces of a regular subdivision,
+#   searched coarse to fine: the SDF is evaluated at the grid points of a cell (shared between
+#   cells, between levels and, along the mesh's edges, between neighbouring triangles), and a
+#   cell whose Lipschitz lower bound exceeds the best value found so far is dropped with
+#   everything inside it; only the pieces that survive to the finest level run the network and
+#   an SDF query at its answer;
+# * with ``vertex_check`` (what collide uses) the network's answer on an in-range triangle is
+#   compared with the best vertex (and any known point, e.g. the centroid the broad phase
+#   evaluated), keeping the lower; with a ``cutoff`` (collide's margin) a triangle or cell
+#   proven to stay above it is not solved at all.
+
+LIPSCHITZ = 1.0  # the bound the culls assume of the SDF, as collide's broad phase does
+_MAX_FLAT_LEVEL = 7  # subdivision levels up to this are solved flat; beyond, coarse to fine
+_CELL_BUDGET = 1 << 20  # cells alive at once in the coarse-to-fine search (about 50 MB of bookkeeping)
+_EDGE_KEY_VERTEX_BITS = 24  # edge points are shared between triangles for meshes of < 2^24 vertices
+_NETWORK_CHUNK = 4096  # pieces per network call (cache-sized: ~5% faster than one call on 16k)
+_TAG_EDGE = 1 << 62
+_TAG_FACE = 1 << 61
 
 
-def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536) -> torch.Tensor:
+def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, vertex_check: bool = False) -> torch.Tensor:
     """Amortized minimum of ``shape``'s SDF on each triangle: (M, 3, 3) source frame -> bary (M, 3).
 
     ``shape`` is a fitted NeuralShape (or any object with ``features(points_norm (N, 3)) -> (N, C)``,
     ``normalised`` (its SDF in the normalised frame) and optionally ``similarity``; without
     ``similarity`` the source frame is the normalised one). Barycentric coordinates are invariant
     under the similarity transform, so the triangles are mapped into the normalised frame and the
-    answer is returned as is. Triangles with an edge longer than the detector's trained range are
-    subdivided into the range, every piece is solved, and the piece whose answer has the lowest
-    signed distance gives the input triangle's barycentrics. float64 input gives float64 output.
+    answer is returned as is. float64 input gives float64 output.
+
+    In-range triangles get the network's answer (one pass; features computed once per distinct
+    vertex). Triangles with an edge longer than the trained range are subdivided into the range
+    (:func:`search_levels`) and the answer is the lowest of the pieces' answers and the grid
+    points evaluated on the way (coarse-to-fine search, see :func:`solve_mesh`).
+    ``vertex_check=True`` also compares each in-range answer with the triangle's best vertex
+    and keeps the lower (one more SDF query per triangle and one per distinct vertex).
     """
     tri_src = as_triangles(triangles)
-    tri = to_normalised_frame(shape, tri_src)
-    levels = subdivision_levels(tri, detector.edge_range[1])
-    bary = torch.empty(tri.shape[:2], dtype=tri.dtype, device=tri.device)
-    for n in torch.unique(levels).tolist():  # a handful of distinct levels, not a loop over triangles
-        rows = (levels == n).nonzero().squeeze(-1)
-        for part in rows.split(chunk):
-            if n == 1:
-                bary[part] = _predict(detector, shape, tri[part])
-            else:
-                bary[part] = _predict_subdivided(detector, shape, tri[part], n, chunk)
+    vertices, inverse = unique_rows(tri_src.reshape(-1, 3))
+    bary, _ = solve_mesh(detector, shape, vertices, inverse.reshape(-1, 3), vertex_check=vertex_check, chunk=chunk)
     return bary
 
 
+def unique_rows(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distinct rows of ``points`` (N, 3) and where each row went: (U, 3), inverse (N,) with ``unique[inverse] == points``.
+
+    Exact (rows equal in every coordinate are merged), by three stable sorts: far cheaper than
+    ``torch.unique(dim=0)``.
+    """
+    n = points.shape[0]
+    order = torch.argsort(points[:, 2], stable=True)
+    for col in (1, 0):
+        order = order[torch.argsort(points[order, col], stable=True)]
+    s = points[order]
+    new = torch.ones(n, dtype=torch.bool, device=points.device)
+    new[1:] = (s[1:] != s[:-1]).any(dim=-1)
+    inverse = torch.empty(n, dtype=torch.int64, device=points.device)
+    inverse[order] = torch.cumsum(new, 0) - 1
+    return s[new], inverse
+
+
 def to_normalised_frame(shape, triangles: torch.Tensor) -> torch.Tensor:
-    """Triangles (M, 3, 3) in the shape's source frame -> its normalised frame, same dtype and device."""
+    """Triangles (M, 3, 3) (or points (..., 3)) in the shape's source frame -> its normalised frame, same dtype and device."""
     similarity = getattr(shape, "similarity", None)
     if similarity is None:
         return triangles
     m = torch.as_tensor(similarity.matrix, dtype=triangles.dtype, device=triangles.device)  # (4, 4)
     return triangles @ m[:3, :3].T + m[:3, 3]
+
+
+def _scale(shape) -> float:
+    similarity = getattr(shape, "similarity", None)
+    return 1.0 if similarity is None else float(similarity.scale)
 
 
 def subdivision_levels(triangles: torch.Tensor, max_edge: float, max_level: int = 64) -> torch.Tensor:
@@ -400,52 +524,350 @@ def subdivision_levels(triangles: torch.Tensor, max_edge: float, max_level: int 
     return torch.ceil(longest / max_edge).clamp(1, max_level).to(torch.int64)
 
 
+def search_levels(levels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coarse-to-fine schedule (start level c, halvings k) of each subdivision level n: (M,), (M,).
+
+    Up to ``_MAX_FLAT_LEVEL`` the pieces are searched flat (c = n, k = 0); beyond, the search
+    starts on c^2 cells and halves them k times, with c = ceil(n / 2^k) <= 7 for the smallest
+    such k. The pieces are those of level c * 2^k >= n: less than 2^k above n, and
+    c >= 4 when k >= 1, so less than n * 9/7 (the pieces' edges stay above 7/9 of the range's top).
+    """
+    c = levels.clone()
+    k = torch.zeros_like(levels)
+    for _ in range(8):  # 2^8 > any level
+        big = c > _MAX_FLAT_LEVEL
+        if not bool(big.any()):
+            break
+        k = k + big.to(k.dtype)
+        c = torch.where(big, torch.div(levels + (1 << k) - 1, 1 << k, rounding_mode="floor"), c)
+    return c, k
+
+
 def subdivision_barycentrics(n: int, dtype=torch.float32, device=None) -> torch.Tensor:
     """Vertices of the n^2 pieces of the regular n-subdivision, as barycentrics of the parent: (n^2, 3, 3).
 
     Piece k's vertex j is ``result[k, j] @ parent_vertices``. Pieces are listed with a
     consistent orientation (the "up" pieces then the "down" pieces).
     """
-    ij = [(i, j) for i in range(n) for j in range(n - i)]
-    up = [[(i, j), (i + 1, j), (i, j + 1)] for i, j in ij]
-    down = [[(i + 1, j), (i + 1, j + 1), (i, j + 1)] for i, j in ij if i + j <= n - 2]
-    grid = torch.tensor(up + down, dtype=torch.float64)  # (n^2, 3, 2): steps along edges v1->v2, v1->v3
+    grid = _subdivision_grid(n).to(torch.float64)
     a, b = grid[..., 0] / n, grid[..., 1] / n
     return torch.stack([1 - a - b, a, b], dim=-1).to(dtype=dtype, device=device)
 
 
-def _predict(detector: AmortizedDetector, shape, tri: torch.Tensor) -> torch.Tensor:
-    """Network answer (M, 3) for in-range triangles (M, 3, 3) in the normalised frame."""
-    features = vertex_features(shape, tri)
-    param = next(detector.parameters())
-    vsdf = None
+def _subdivision_grid(n: int, device=None) -> torch.Tensor:
+    """Integer grid coordinates (n^2, 3, 2) of the pieces' vertices: (i, j) is the point (1 - (i+j)/n, i/n, j/n)."""
+    ij = [(i, j) for i in range(n) for j in range(n - i)]
+    up = [[(i, j), (i + 1, j), (i, j + 1)] for i, j in ij]
+    down = [[(i + 1, j), (i + 1, j + 1), (i, j + 1)] for i, j in ij if i + j <= n - 2]
+    return torch.tensor(up + down, dtype=torch.int64, device=device)
+
+
+def cell_lower_bounds(cells: torch.Tensor, values: torch.Tensor, lipschitz: float = LIPSCHITZ) -> torch.Tensor:
+    """A lower bound (C,) of an L-Lipschitz SDF over each triangle (C, 3, 3) from its vertex values (C, 3).
+
+    The larger of two bounds: ``max_i f_i - L * reach_i`` (reach_i: the longest edge at vertex i,
+    the farthest any point of the triangle is from it) and ``min_i f_i - L * R`` (R: the radius of
+    the smallest ball holding the triangle, circumradius or half the longest edge, which is the
+    farthest any point of the triangle is from its nearest vertex). Rounding slack is subtracted.
+    """
+    e = torch.stack([(cells[:, 1] - cells[:, 2]).norm(dim=-1), (cells[:, 2] - cells[:, 0]).norm(dim=-1),
+                     (cells[:, 0] - cells[:, 1]).norm(dim=-1)], dim=-1)  # (C, 3): edge k opposite vertex k
+    reach = torch.stack([torch.maximum(e[:, 1], e[:, 2]), torch.maximum(e[:, 0], e[:, 2]), torch.maximum(e[:, 0], e[:, 1])], dim=-1)
+    by_vertex = (values - lipschitz * reach).amax(dim=-1)
+    longest = e.amax(dim=-1)
+    twice_area = torch.linalg.cross(cells[:, 1] - cells[:, 0], cells[:, 2] - cells[:, 0], dim=-1).norm(dim=-1)
+    not_acute = 2 * longest.square() >= e.square().sum(dim=-1)  # longest^2 >= the other two's squares summed
+    circumradius = e.prod(dim=-1) / (2 * twice_area).clamp_min(torch.finfo(cells.dtype).tiny)
+    radius = torch.where(not_acute, 0.5 * longest, circumradius)
+    by_ball = values.amin(dim=-1) - lipschitz * radius
+    bound = torch.maximum(by_vertex, by_ball)
+    slack = 16 * torch.finfo(cells.dtype).eps * (values.abs().amax(dim=-1) + longest + cells.abs().amax(dim=(1, 2)))
+    return bound - slack
+
+
+# --------------------------------------------------------------------------- the point table
+
+
+class _PointTable:
+    """Every point the search has evaluated: normalised coordinates, features and distances.
+
+    Rows 0..U-1 are the mesh's distinct vertices; grid points of subdivided triangles follow,
+    found by an int64 key: a point on a mesh edge by (its two vertices, in ascending order, and
+    the reduced fraction along it), so neighbouring triangles share it; any other grid point by
+    (its triangle, its grid coordinates at the triangle's finest level).
+    """
+
+    def __init__(self, shape, vertices_n: torch.Tensor, faces: torch.Tensor, values_for: torch.Tensor):
+        self.shape = shape
+        self.faces = faces
+        self.share_edges = vertices_n.shape[0] < (1 << _EDGE_KEY_VERTEX_BITS)
+        self.coords = vertices_n
+        self.z, self.f = _features(shape, vertices_n), torch.full(vertices_n.shape[:1], float("nan"), dtype=vertices_n.dtype, device=vertices_n.device)
+        self.has_f = torch.zeros(vertices_n.shape[0], dtype=torch.bool, device=vertices_n.device)
+        self.ensure_values(values_for)
+        self.keys = torch.zeros(0, dtype=torch.int64, device=vertices_n.device)  # sorted
+        self.slots = torch.zeros(0, dtype=torch.int64, device=vertices_n.device)
+
+    def ensure_values(self, rows: torch.Tensor) -> None:
+        """Distances at the vertex rows ``rows`` (the decoder on the features already computed)."""
+        rows = torch.unique(rows)
+        rows = rows[~self.has_f[rows]]
+        if rows.numel():
+            self.f[rows] = _distances_from_features(self.shape, self.coords[rows], self.z[rows])
+            self.has_f[rows] = True
+
+    def grid_points(self, rows: torch.Tensor, ij: torch.Tensor, n: int) -> torch.Tensor:
+        """Row indices (Q,) of the grid points (i, j) (Q, 2) at level ``n`` of triangles ``rows`` (Q,); evaluated if new."""
+        i, j = ij[:, 0], ij[:, 1]
+        out = torch.empty_like(i)
+        face = self.faces[rows]  # (Q, 3)
+        corner = torch.full_like(i, -1)
+        corner = torch.where((i == 0) & (j == 0), 0, corner)
+        corner = torch.where(i == n, 1, corner)
+        corner = torch.where(j == n, 2, corner)
+        is_corner = corner >= 0
+        out[is_corner] = face[is_corner].gather(1, corner[is_corner].unsqueeze(1)).squeeze(1)
+        rest = (~is_corner).nonzero().squeeze(-1)
+        if rest.numel() == 0:
+            return out
+        i, j, face, r = i[rest], j[rest], face[rest], rows[rest]
+        # a point on an edge: (a, b, t) with t the fraction from a to b, t = num / n
+        on01, on02, on12 = j == 0, i == 0, (i + j == n)
+        edge = on01 | on02 | on12
+        a = torch.where(on12, face[:, 1], face[:, 0])
+        b = torch.where(on01, face[:, 1], face[:, 2])
+        num = torch.where(on01, i, j)
+        swap = a > b
+        a, b, num = torch.where(swap, b, a), torch.where(swap, a, b), torch.where(swap, n - num, num)
+        den = torch.full_like(num, n)
+        g = torch.gcd(num, den).clamp_min(1)
+        num, den = num // g, den // g
+        if self.share_edges:
+            edge_key = _TAG_EDGE | (a << 38) | (b << 14) | (num << 7) | den
+        else:
+            edge_key = torch.zeros_like(a)
+            edge = torch.zeros_like(edge)
+        face_key = _TAG_FACE | (r << 16) | (i << 8) | j
+        key = torch.where(edge, edge_key, face_key)
+        # coordinates: along the edge from the canonical end, else barycentric in the triangle
+        t = (num.to(self.coords.dtype) / den.to(self.coords.dtype)).unsqueeze(-1)
+        va, vb = self.coords[a], self.coords[b]
+        along = va + t * (vb - va)
+        w = torch.stack([n - i - j, i, j], dim=-1).to(self.coords.dtype) / n  # (Q, 3)
+        inside = torch.einsum("qv,qvc->qc", w, self.coords[face])
+        xyz = torch.where(edge.unsqueeze(-1), along, inside)
+        out[rest] = self._lookup_or_add(key, xyz)
+        return out
+
+    def _lookup_or_add(self, key: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+        uniq, first_inverse = torch.unique(key, return_inverse=True)
+        slot = torch.empty_like(uniq)
+        if self.keys.numel():
+            pos = torch.searchsorted(self.keys, uniq).clamp_max(self.keys.numel() - 1)
+            found = self.keys[pos] == uniq
+            slot[found] = self.slots[pos[found]]
+        else:
+            found = torch.zeros_like(uniq, dtype=torch.bool)
+        missing = (~found).nonzero().squeeze(-1)
+        if missing.numel():
+            # one representative query per missing key
+            rep = torch.full((uniq.numel(),), key.numel(), dtype=torch.int64, device=key.device)
+            rep.scatter_reduce_(0, first_inverse, torch.arange(key.numel(), device=key.device), "amin")
+            p = xyz[rep[missing]]
+            z = _features(self.shape, p)
+            f = _distances_from_features(self.shape, p, z)
+            start = self.coords.shape[0]
+            new_slots = torch.arange(start, start + missing.numel(), device=key.device)
+            self.coords = torch.cat([self.coords, p])
+            self.z = torch.cat([self.z, z])
+            self.f = torch.cat([self.f, f])
+            self.has_f = torch.cat([self.has_f, torch.ones(missing.numel(), dtype=torch.bool, device=key.device)])
+            slot[missing] = new_slots
+            keys = torch.cat([self.keys, uniq[missing]])
+            slots = torch.cat([self.slots, new_slots])
+            order = torch.argsort(keys)
+            self.keys, self.slots = keys[order], slots[order]
+        return slot[first_inverse]
+
+
+def _features(shape, points: torch.Tensor) -> torch.Tensor:
     with torch.no_grad():
-        if detector.vertex_sdf:
-            vsdf = torch.as_tensor(shape.normalised(tri.reshape(-1, 3))).reshape(-1, 3).to(param)
-        out = detector(tri.to(param), features.to(param), vsdf)
-    return out.to(tri.dtype)
+        return torch.as_tensor(shape.features(points)).to(points)
+
+
+def _distances_from_features(shape, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """Normalised-frame distances at ``points``: the shape's decoder on features already computed
+    where it offers one (``distances_from_features``), else a plain query of ``shape.normalised``."""
+    with torch.no_grad():
+        fast = getattr(shape, "distances_from_features", None)
+        if callable(fast):
+            return torch.as_tensor(fast(points, features)).to(points)
+        return torch.as_tensor(shape.normalised(points)).reshape(-1).to(points)
+
+
+# --------------------------------------------------------------------------- solving a mesh
+
+
+def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: float | None = None, known=None,
+               vertex_check: bool = True, cull: bool = True, chunk: int = 65536):
+    """Amortized minima of ``shape``'s SDF on the triangles ``vertices[faces]``: -> bary (M, 3), values (M,) or None.
+
+    ``vertices`` (V, 3) in the shape's source frame (only those ``faces`` (M, 3) name are used),
+    ``faces`` int (M, 3). ``values`` are the source-frame signed distances at the returned points
+    (None when nothing was evaluated there: ``vertex_check=False`` on in-range triangles only).
+
+    * In-range triangles: the network's answer; with ``vertex_check``, the lowest of it, the three
+      vertices and the ``known`` point.
+    * Longer triangles: the lowest of the answers on the surviving pieces and the grid points
+      evaluated (and the ``known`` point), searched coarse to fine (:func:`search_levels`).
+    * ``known``: (bary (M, 3), values (M,)) a point per triangle whose source-frame distance is
+      known already (collide passes the centroids its broad phase evaluated).
+    * ``cutoff`` (source frame, needs ``vertex_check``): triangles and cells whose lower bound
+      (:func:`cell_lower_bounds`) exceeds it are not solved; such a row's value is only proven
+      to be > cutoff (what collide needs of a triangle that is no contact).
+    * ``cull=False`` evaluates every piece (the exhaustive search; the culls assume the SDF is
+      ``LIPSCHITZ``-Lipschitz and otherwise give the same answer).
+    """
+    if cutoff is not None and not vertex_check:
+        raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
+    faces = torch.as_tensor(faces, device=vertices.device).long()
+    if faces.shape[0] == 0:
+        empty = vertices.new_zeros((0, 3))
+        return empty, (vertices.new_zeros((0,)) if vertex_check else None)
+    used, local = torch.unique(faces, return_inverse=True)
+    v_n = to_normalised_frame(shape, vertices[used])
+    tri_n = v_n[local]  # (M, 3, 3)
+    m_rows = local.shape[0]
+    scale = _scale(shape)
+    param = next(detector.parameters())
+    levels = subdivision_levels(tri_n, detector.edge_range[1])
+    start, halvings = search_levels(levels)
+    single = levels == 1
+    # distances are needed at the vertices of subdivided triangles (bounds, candidates), at every
+    # vertex with the vertex check, and wherever the detector reads them
+    needs_f = torch.ones_like(single) if (vertex_check or detector.vertex_sdf) else ~single
+    table = _PointTable(shape, v_n, local, local[needs_f].reshape(-1))
+
+    dtype = v_n.dtype
+    best_val = torch.full((m_rows,), float("inf"), dtype=dtype, device=v_n.device)
+    best_bary = torch.full((m_rows, 3), 1 / 3, dtype=dtype, device=v_n.device)
+    from_known = torch.zeros(m_rows, dtype=torch.bool, device=v_n.device)
+    rows_f = needs_f.nonzero().squeeze(-1)
+    if rows_f.numel():  # the vertices are candidates
+        fv = table.f[local[rows_f]]  # (R, 3)
+        val, arg = fv.min(dim=-1)
+        best_val[rows_f] = val
+        best_bary[rows_f] = F.one_hot(arg, 3).to(dtype)
+    if not vertex_check:
+        best_val[single] = float("inf")  # in-range answers are the network's, whatever the vertices
+    if known is not None:
+        k_bary, k_val = (torch.as_tensor(t, device=v_n.device).to(dtype) for t in known)
+        better = (k_val * scale < best_val) & (vertex_check | ~single)
+        best_val = torch.where(better, k_val * scale, best_val)
+        best_bary = torch.where(better.unsqueeze(-1), k_bary, best_bary)
+        from_known = better
+    cut_n = None if cutoff is None else float(cutoff) * scale
+
+    # the pieces that reach the network: (row, piece's point indices (P, 3), piece's grid (P, 3, 2), level)
+    pieces: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]] = []
+    single_rows = single.nonzero().squeeze(-1)
+    if single_rows.numel():
+        corners = _subdivision_grid(1, v_n.device).expand(single_rows.numel(), -1, -1)
+        idx = local[single_rows]
+        if cull and cut_n is not None:
+            keep = cell_lower_bounds(tri_n[single_rows], table.f[idx]) <= cut_n
+            single_rows, idx, corners = single_rows[keep], idx[keep], corners[keep]
+        pieces.append((single_rows, idx, corners, 1))
+    schedule = start * 16 + halvings  # k < 16
+    for code in torch.unique(schedule[~single]).tolist():
+        c, k = divmod(int(code), 16)
+        rows = ((schedule == code) & ~single).nonzero().squeeze(-1)
+        per_chunk = max(1, _CELL_BUDGET // (c * c * 4**k))
+        for part in rows.split(per_chunk):
+            found = _search(table, tri_n, part, c, k, best_val, best_bary, from_known, cut_n, cull)
+            if found is not None:
+                pieces.append(found)
+
+    for rows, idx, grid, n in pieces:
+        for sel in torch.arange(rows.numel(), device=v_n.device).split(min(chunk, _NETWORK_CHUNK)):
+            r, i, g = rows[sel], idx[sel], grid[sel]
+            vsdf = table.f[i].to(param) if detector.vertex_sdf else None
+            with torch.no_grad():
+                local_bary = detector(table.coords[i].to(param), table.z[i].to(param), vsdf).to(dtype)  # (P, 3)
+            w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
+            bary = torch.einsum("pk,pkv->pv", local_bary, w)
+            bary = bary / bary.sum(dim=-1, keepdim=True)  # rows sum to 1 in the working dtype: the point is frame-independent
+            if n == 1 and not vertex_check:
+                best_bary[r] = bary  # the network's answer as is
+                continue
+            with torch.no_grad():
+                val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(dtype)
+            _improve(best_val, best_bary, from_known, r, val, bary)
+
+    values = None
+    if vertex_check:
+        values = best_val / scale
+        if known is not None:
+            values = torch.where(from_known, k_val, values)
+    return best_bary.to(vertices.dtype), None if values is None else values.to(vertices.dtype)
+
+
+def _search(table: _PointTable, tri_n, rows, c: int, k: int, best_val, best_bary, from_known, cut_n, cull: bool):
+    """Coarse-to-fine search over the pieces of level c * 2^k of triangles ``rows``.
+
+    Updates ``best_*`` with the grid points evaluated and returns the surviving pieces
+    (rows, point indices, grid coordinates, level), or None when none survives.
+    """
+    n = c * (1 << k)
+    base = _subdivision_grid(c, tri_n.device) * (1 << k)  # (c^2, 3, 2) at the finest level's coordinates
+    cell_rows = rows.repeat_interleave(base.shape[0])
+    grid = base.repeat(rows.numel(), 1, 1)
+    for step in range(k + 1):
+        idx = table.grid_points(cell_rows.repeat_interleave(3), grid.reshape(-1, 2), n).reshape(-1, 3)
+        values = table.f[idx]  # (C, 3)
+        corner_bary = torch.cat([n - grid.sum(-1, keepdim=True), grid], dim=-1).to(values.dtype) / n  # (C, 3, 3)
+        _improve(best_val, best_bary, from_known, cell_rows.repeat_interleave(3), values.reshape(-1), corner_bary.reshape(-1, 3))
+        if cull:
+            lower = cell_lower_bounds(table.coords[idx], values)
+            keep = lower <= best_val[cell_rows]
+            if cut_n is not None:
+                keep &= lower <= cut_n
+            cell_rows, grid, idx = cell_rows[keep], grid[keep], idx[keep]
+        if cell_rows.numel() == 0:
+            return None
+        if step < k:
+            cell_rows, grid = cell_rows.repeat_interleave(4), _split_cells(grid)
+    return cell_rows, idx, grid, n
+
+
+def _split_cells(grid: torch.Tensor) -> torch.Tensor:
+    """Each cell (C, 3, 2) (even integer coordinates) -> its four halves (4C, 3, 2), in order per cell."""
+    a, b, c = grid[:, 0], grid[:, 1], grid[:, 2]
+    ab, bc, ca = (a + b) // 2, (b + c) // 2, (c + a) // 2
+    return torch.stack([torch.stack([a, ab, ca], 1), torch.stack([ab, b, bc], 1), torch.stack([ca, bc, c], 1),
+                        torch.stack([bc, ca, ab], 1)], dim=1).reshape(-1, 3, 2)
+
+
+def _improve(best_val, best_bary, from_known, rows, values, bary) -> None:
+    """Where a candidate (rows (Q,), values (Q,), bary (Q, 3)) beats its row's best, take it (the first such, in order)."""
+    if rows.numel() == 0:
+        return
+    new = best_val.clone().scatter_reduce_(0, rows, values, "amin")
+    improved = new < best_val
+    if not bool(improved.any()):
+        return
+    win = (values == new[rows]) & improved[rows]
+    first = torch.full(best_val.shape, rows.numel(), dtype=torch.int64, device=rows.device)
+    first.scatter_reduce_(0, rows[win], win.nonzero().squeeze(-1), "amin")
+    changed = improved.nonzero().squeeze(-1)
+    best_bary[changed] = bary[first[changed]]
+    best_val.copy_(new)
+    from_known[changed] = False
 
 
 def vertex_features(shape, tri: torch.Tensor) -> torch.Tensor:
-    """Code-cloud features at the vertices: (M, 3, 3) normalised -> (M, 3, C)."""
+    """Code-cloud features at the vertices: (M, 3, 3) normalised -> (M, 3, C), one query per distinct vertex."""
+    vertices, inverse = unique_rows(tri.reshape(-1, 3))
     with torch.no_grad():
-        f = shape.features(tri.reshape(-1, 3))
-    return f.reshape(tri.shape[0], 3, -1)
-
-
-def _predict_subdivided(detector: AmortizedDetector, shape, tri: torch.Tensor, n: int, chunk: int) -> torch.Tensor:
-    """Answer (M, 3) for triangles (M, 3, 3) too long for the detector: solve n^2 pieces each, keep the lowest."""
-    pieces_bary = subdivision_barycentrics(n, tri.dtype, tri.device)  # (P, 3, 3)
-    p = pieces_bary.shape[0]
-    out = torch.empty(tri.shape[:2], dtype=tri.dtype, device=tri.device)
-    per_chunk = max(1, chunk // p)
-    for rows in torch.arange(tri.shape[0], device=tri.device).split(per_chunk):
-        pieces = torch.einsum("pjk,mkc->mpjc", pieces_bary, tri[rows]).reshape(-1, 3, 3)  # (m*P, 3, 3)
-        local = _predict(detector, shape, pieces)  # (m*P, 3) barycentrics of each piece
-        parent = torch.einsum("mpj,pjk->mpk", local.reshape(-1, p, 3), pieces_bary)  # (m, P, 3)
-        points = bary_to_points(tri[rows].repeat_interleave(p, 0), parent.reshape(-1, 3))
-        with torch.no_grad():
-            d = shape.normalised(points).reshape(-1, p)  # (m, P)
-        best = d.argmin(dim=-1)
-        out[rows] = parent[torch.arange(len(rows), device=tri.device), best]
-    return out
+        f = torch.as_tensor(shape.features(vertices))
+    return f[inverse].reshape(tri.shape[0], 3, -1)

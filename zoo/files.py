@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -45,6 +46,30 @@ def atomic_path(path: str | os.PathLike):
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
+
+
+def write_safetensors(path: str | os.PathLike, tensors: dict, metadata: dict | None = None) -> Path:
+    """Write ``tensors`` as a safetensors file, atomically and byte for byte reproducibly.
+
+    safetensors (0.8) writes ``__metadata__`` in the order of a Rust HashMap, which changes from
+    one process to the next: with two or more metadata keys, the same tensors gave different
+    bytes (and sha256) in every run. The header is rewritten here with those keys sorted (the
+    same JSON, the same length); the tensor data are untouched.
+    """
+    from safetensors.torch import save
+
+    data = save(tensors, metadata=metadata)
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + n])
+    if len(header.get("__metadata__") or {}) > 1:
+        header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+        text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(text) <= n:  # always, as only the order changed; else keep safetensors' own bytes
+            data = data[:8] + text + b" " * (n - len(text)) + data[8 + n :]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(data)
+    return path
 
 
 def write_checksums(directory: str | os.PathLike) -> dict[str, str]:

@@ -58,6 +58,8 @@ def load_mesh(path: str | os.PathLike):
         raise DataError(f"{path} has suffix {path.suffix!r}; sdfzoo reads {', '.join(MESH_SUFFIXES)} meshes: convert it first")
     try:
         mesh = _load_any(trimesh, path)
+    except DataError:
+        raise
     except Exception as exc:  # trimesh raises many types for garbage input
         raise DataError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}; is the file a valid {path.suffix} mesh?") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(getattr(mesh, "faces", ())) == 0:
@@ -76,16 +78,26 @@ def load_mesh(path: str | os.PathLike):
 
 
 def _load_any(trimesh, path: Path):
+    # Loaded unprocessed, then processed as trimesh.load would: its processing silently drops
+    # NaN/Inf vertices with every face that uses them, so a mesh with a few bad vertices would
+    # come back smaller but seemingly valid. They are refused here instead.
     try:
-        return trimesh.load(path, force="mesh")
+        mesh = trimesh.load(path, force="mesh", process=False)
     except (UnicodeDecodeError, ImportError):
         if path.suffix.lower() != ".obj":
             raise
-    # A text OBJ with stray non-UTF-8 bytes (e.g. 0xa0 in a comment): trimesh would guess the
-    # encoding with charset_normalizer, an optional dependency. Latin-1 decodes any byte, and
-    # the geometry is ASCII anyway.
-    text = path.read_bytes().decode("latin-1")
-    return trimesh.load(io.BytesIO(text.encode("utf-8")), file_type="obj", force="mesh")
+        # A text OBJ with stray non-UTF-8 bytes (e.g. 0xa0 in a comment): trimesh would guess the
+        # encoding with charset_normalizer, an optional dependency. Latin-1 decodes any byte, and
+        # the geometry is ASCII anyway.
+        text = path.read_bytes().decode("latin-1")
+        mesh = trimesh.load(io.BytesIO(text.encode("utf-8")), file_type="obj", force="mesh", process=False)
+    if isinstance(mesh, trimesh.Trimesh):
+        bad = ~np.isfinite(np.asarray(mesh.vertices)).all(axis=-1)
+        if bad.any():
+            raise DataError(f"{path} has {int(bad.sum())} vertices with NaN or Inf coordinates (of {len(bad)}); "
+                            "repair or re-export the mesh")
+        mesh.process()
+    return mesh
 
 
 # --------------------------------------------------------------------------- the similarity

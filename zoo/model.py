@@ -262,16 +262,13 @@ def read_similarities(config: dict) -> dict:
 
 
 def save_sdf_weights(path: Path, sdf: NeuralSDF, fp16: bool) -> None:
-    from safetensors.torch import save_file
-
-    from .files import atomic_path
+    from .files import write_safetensors
 
     cloud_dtype = torch.float16 if fp16 else torch.float32
     tensors = {f"decoder.{k}": v.detach().float().cpu().contiguous() for k, v in sdf.decoder.state_dict().items()}
     tensors["codes"] = sdf.codes.detach().to("cpu", cloud_dtype).contiguous()
     tensors["positions"] = sdf.positions.detach().to("cpu", cloud_dtype).contiguous()
-    with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata={"format": "sdfzoo-dcc-dif", "format_version": str(FORMAT_VERSION)})
+    write_safetensors(path, tensors, metadata={"format": "sdfzoo-dcc-dif", "format_version": str(FORMAT_VERSION)})
 
 
 def load_sdf_weights(path: Path, config: dict) -> NeuralSDF:

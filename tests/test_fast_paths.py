@@ -1,0 +1,310 @@
+"""Each optimised inference path held against the naive computation it replaces.
+
+* NeuralShape queries: the direct inverse-distance-cubed weights against the softmax-of-logs
+  formula training uses (values and gradients), the fused features-and-distances pass;
+* the detector's bookkeeping: distinct rows, per-distinct-vertex features against per-triangle
+  ones, the Lipschitz lower bound of a cell, the coarse-to-fine schedule;
+* the coarse-to-fine search against the exhaustive one (every piece solved), and against the
+  previous subdivision (every piece solved, the lowest piece's answer kept): never worse;
+* the cutoff and the known point that collide passes: the same contacts as without them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import zoo
+from zoo import neural
+from zoo.detector import (
+    AmortizedDetector,
+    cell_lower_bounds,
+    detect,
+    search_levels,
+    solve_mesh,
+    subdivision_barycentrics,
+    subdivision_levels,
+    unique_rows,
+    vertex_features,
+)
+from zoo.geometry import bary_to_points
+from zoo.meshes import Similarity
+from zoo.neural import (
+    NeuralSDF,
+    NeuralSDFConfig,
+    NeuralShape,
+    augmented_code_cloud,
+    decode,
+    direct_weights_are_safe,
+    interpolate_codes,
+    interpolate_codes_direct,
+)
+
+SMALL = NeuralSDFConfig(n_codes=32, code_dim=8, hidden=(32, 32))
+
+
+def small_shape(similarity=None, seed=0) -> NeuralShape:
+    torch.manual_seed(seed)
+    m = NeuralSDF(SMALL, 1, torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        m.codes.normal_(0, 0.3)
+    return NeuralShape("a", m.decoder.requires_grad_(False), SMALL, m.codes[0], m.positions[0], similarity)
+
+
+def rotation(seed):
+    q = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64))[0]
+    return (q * torch.sign(torch.det(q))).numpy()
+
+
+# --------------------------------------------------------------------------- NeuralShape queries
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_direct_weights_give_the_softmax_formulas_features(dtype):
+    g = torch.Generator().manual_seed(1)
+    pos = (torch.rand(64, 3, generator=g, dtype=torch.float64) - 0.5).to(dtype)
+    codes = torch.randn(64, 16, generator=g, dtype=torch.float64).to(dtype)
+    pts = torch.cat([pos[:5], torch.rand(300, 3, generator=g, dtype=torch.float64).to(dtype) - 0.5])  # five exactly on codes
+    old = interpolate_codes(pts.unsqueeze(0), pos.unsqueeze(0), codes.unsqueeze(0), 1e-16).squeeze(0)
+    new = interpolate_codes_direct(pts, *augmented_code_cloud(pos, codes), 1e-16)
+    tol = 1e-10 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(new, old, atol=tol, rtol=tol)
+    torch.testing.assert_close(new[:5], codes[:5], atol=tol, rtol=tol)  # a point on a code takes that code
+
+
+def test_direct_path_matches_the_training_formula_in_values_and_gradients():
+    shape = small_shape(Similarity(2.5, rotation(3), np.array([0.1, -0.2, 0.05])))
+    p = torch.rand(500, 3, dtype=torch.float64) * 0.3
+    d, g = shape.value_and_grad(p)
+    # the training formula (softmax of log-weights), by autograd, in the normalised frame
+    s, r, t = (torch.as_tensor(v, dtype=torch.float64) for v in (shape.similarity.scale, shape.similarity.rotation, shape.similarity.translation))
+    x = p.clone().requires_grad_(True)
+    pn = s * x @ r.T + t
+    ref = decode(shape.decoder.double(), pn.unsqueeze(0), shape.positions.double().unsqueeze(0),
+                 shape.codes.double().unsqueeze(0), SMALL.eps).squeeze(0) / s
+    (ref_g,) = torch.autograd.grad(ref.sum(), x)
+    shape.decoder.float()
+    torch.testing.assert_close(d, ref.detach(), atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(g, ref_g, atol=1e-10, rtol=1e-8)
+
+
+def test_tiny_eps_falls_back_to_the_softmax_form():
+    assert direct_weights_are_safe(1e-16, 256, torch.float32)
+    assert not direct_weights_are_safe(1e-40, 256, torch.float32) and not direct_weights_are_safe(0.0, 256, torch.float64)
+    config = NeuralSDFConfig(n_codes=32, code_dim=8, hidden=(32, 32), eps=1e-40)
+    m = NeuralSDF(config, 1, torch.Generator().manual_seed(0))
+    shape = NeuralShape("a", m.decoder.requires_grad_(False), config, m.codes[0], m.positions[0])
+    pts = torch.cat([m.positions[0, :3].detach(), torch.rand(20, 3) - 0.5])
+    ref = decode(m.decoder, pts.unsqueeze(0), m.positions.detach(), m.codes.detach(), 1e-40).squeeze(0)
+    assert shape._cached(torch.float32, "cpu")[3] is None
+    torch.testing.assert_close(shape(pts), ref.detach())
+    assert torch.isfinite(shape.value_and_grad(pts)[1]).all()
+
+
+def test_features_and_distances_is_features_then_the_decoder(monkeypatch):
+    shape = small_shape()
+    p = torch.rand(3000, 3) - 0.5
+    monkeypatch.setattr(neural, "_CHUNK_ELEMENTS", 32 * 100)  # several chunks
+    z, d = shape.features_and_distances(p)
+    torch.testing.assert_close(z, shape.features(p))
+    torch.testing.assert_close(d, shape.normalised(p))
+    torch.testing.assert_close(shape.distances_from_features(p, z), d)
+    assert shape.normalised is shape.normalised  # built once, sharing the converted networks
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_inference_decoder_is_the_decoder_and_follows_its_weights(dtype):
+    shape = small_shape()
+    p = (torch.rand(700, 3, dtype=torch.float64) - 0.5).to(dtype)
+    z = shape.features(p)
+    dec = shape._cached(dtype, "cpu")[0]
+    fast = shape._decoder_no_grad(dtype, "cpu")
+    assert isinstance(fast, neural.InferenceDecoder)
+    with torch.no_grad():
+        torch.testing.assert_close(fast(z, p), dec(z, p), atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
+        torch.testing.assert_close(shape.normalised(p), dec(z, p), atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
+        dec.hidden[0].bias.add_(0.5)  # weights changed in place (an optimiser step): the folded copy follows
+        torch.testing.assert_close(shape._decoder_no_grad(dtype, "cpu")(z, p), dec(z, p), atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
+    assert not neural.InferenceDecoder.supports(neural.Decoder(NeuralSDFConfig(n_codes=8, code_dim=4, hidden=(16, 8))))
+
+
+# --------------------------------------------------------------------------- the detector's bookkeeping
+
+
+class TorusWithCodes:
+    """An exact torus SDF (1-Lipschitz) with a fixed random code cloud: what detect() reads of a shape."""
+
+    def __init__(self, similarity=None):
+        g = torch.Generator().manual_seed(0)
+        self.normalised = zoo.Torus(0.3, 0.06)
+        self.positions = torch.rand(1, 64, 3, generator=g) - 0.5
+        self.codes = torch.randn(1, 64, 32, generator=g)
+        self.similarity = similarity
+        self.feature_points = 0
+
+    def features(self, points_norm):
+        self.feature_points += points_norm.shape[0]
+        p = torch.as_tensor(points_norm).float()
+        return interpolate_codes(p.unsqueeze(0), self.positions, self.codes, 1e-16).squeeze(0)
+
+
+def detector(seed=0, **kwargs) -> AmortizedDetector:
+    torch.manual_seed(seed)
+    return AmortizedDetector(**kwargs).eval()
+
+
+def grid_mesh(n=12, size=0.5, z=0.0, jitter=0.0, seed=0):
+    """A square grid mesh (vertices (V, 3) float64, faces (F, 3)) in the plane at height z."""
+    x = np.linspace(-size / 2, size / 2, n + 1)
+    gx, gy = np.meshgrid(x, x, indexing="ij")
+    v = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], -1)
+    v += jitter * np.random.default_rng(seed).normal(size=v.shape)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return torch.as_tensor(v), torch.as_tensor(np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)]))
+
+
+def test_unique_rows_is_exact_and_inverts():
+    v, f = grid_mesh(6)
+    rows = v[f].reshape(-1, 3)
+    uniq, inverse = unique_rows(rows)
+    assert torch.equal(uniq[inverse], rows)
+    assert uniq.shape[0] == v.shape[0] == torch.unique(rows, dim=0).shape[0]
+    assert torch.equal(uniq, torch.unique(rows, dim=0))  # the same rows, in lexicographic order
+
+
+def test_per_vertex_features_equal_per_triangle_features_with_fewer_queries():
+    shape = TorusWithCodes()
+    v, f = grid_mesh(10)
+    tri = v[f].float()
+    per_triangle = shape.features(tri.reshape(-1, 3)).reshape(-1, 3, 32)
+    shape.feature_points = 0
+    torch.testing.assert_close(vertex_features(shape, tri), per_triangle, atol=0, rtol=0)
+    assert shape.feature_points == v.shape[0] < tri.shape[0] * 3 / 4  # each vertex once
+
+
+def test_in_range_answers_are_the_networks_on_per_triangle_features():
+    shape, det = TorusWithCodes(), detector()
+    v, f = grid_mesh(12, size=0.5, z=0.05, jitter=0.003)  # edges ~0.04: in range
+    tri = v[f].float()
+    assert bool((subdivision_levels(tri, det.edge_range[1]) == 1).all())
+    with torch.no_grad():
+        naive = det(tri, shape.features(tri.reshape(-1, 3)).reshape(-1, 3, 32))
+    torch.testing.assert_close(detect(det, shape, tri), naive, atol=1e-6, rtol=0)
+
+
+def test_cell_lower_bound_never_exceeds_the_minimum_of_a_1_lipschitz_sdf():
+    sdf = zoo.Sphere(0.25)
+    g = torch.Generator().manual_seed(4)
+    centres = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g, dtype=torch.float64), dim=-1) * 0.3
+    size = 0.005 + 0.2 * torch.rand(4000, 1, 1, generator=g, dtype=torch.float64)
+    tri = centres.unsqueeze(1) + size * torch.randn(4000, 3, 3, generator=g, dtype=torch.float64)
+    tri[:50, 2] = tri[:50, 0] + 0.5 * (tri[:50, 1] - tri[:50, 0])  # degenerate: collinear
+    bound = cell_lower_bounds(tri, sdf(tri.reshape(-1, 3)).reshape(-1, 3))
+    grid = subdivision_barycentrics(40, torch.float64).reshape(-1, 3)
+    sampled = sdf(torch.einsum("gv,mvc->mgc", grid, tri).reshape(-1, 3)).reshape(4000, -1).amin(-1)
+    exact_gap = sampled - bound  # sampled >= true minimum >= bound
+    assert bool((exact_gap >= -1e-12).all())
+    assert float(exact_gap.median()) < 0.1  # and it is not vacuous
+
+
+def test_search_schedule_nests_and_stays_in_range():
+    n = torch.arange(1, 65)
+    c, k = search_levels(n)
+    finest = c * 2**k
+    assert bool((finest >= n).all()) and bool((c <= 7).all())
+    assert torch.equal(finest[:7], n[:7]) and bool((k[:7] == 0).all())  # up to 7: flat, the same level
+    assert bool((finest[7:] < n[7:] * 9 / 7).all())  # beyond: less than 2^k above, pieces stay in range
+
+
+# --------------------------------------------------------------------------- the search
+
+
+def mixed_triangles(seed=0, m=40):
+    """Triangles hovering over and cutting the torus, longest edges 0.1-1.3 (levels 2-17)."""
+    g = torch.Generator().manual_seed(seed)
+    angle = torch.rand(m, generator=g) * 2 * math.pi
+    centre = torch.stack([0.3 * torch.cos(angle), 0.3 * torch.sin(angle), 0.03 + 0.08 * torch.rand(m, generator=g) - 0.04], -1)
+    size = 0.06 + 0.7 * torch.rand(m, 1, 1, generator=g) ** 2
+    return (centre.unsqueeze(1) + size * torch.randn(m, 3, 3, generator=g) * torch.tensor([1.0, 1.0, 0.2])).double()
+
+
+def naive_subdivided(det, shape, tri, n):
+    """The previous subdivision: every piece of level n solved, the piece whose answer is lowest kept."""
+    pieces_bary = subdivision_barycentrics(n, tri.dtype)
+    pieces = torch.einsum("pjk,mkc->mpjc", pieces_bary, tri).reshape(-1, 3, 3)
+    with torch.no_grad():
+        local = det(pieces.float(), shape.features(pieces.reshape(-1, 3)).reshape(-1, 3, 32)).double()
+    parent = torch.einsum("mpj,pjk->mpk", local.reshape(tri.shape[0], -1, 3), pieces_bary)
+    f = shape.normalised(bary_to_points(tri.repeat_interleave(pieces_bary.shape[0], 0), parent.reshape(-1, 3)))
+    best = f.reshape(tri.shape[0], -1).argmin(-1)
+    return parent[torch.arange(tri.shape[0]), best]
+
+
+def test_coarse_to_fine_search_gives_the_exhaustive_answer_and_evaluates_less():
+    shape, det = TorusWithCodes(), detector()
+    tri = mixed_triangles()
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    levels = subdivision_levels(tri, det.edge_range[1])
+    assert int((levels > 1).sum()) > 30 and int(levels.max()) > 8  # flat and coarse-to-fine levels both
+    shape.feature_points = 0
+    culled, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False)
+    culled_points, shape.feature_points = shape.feature_points, 0
+    exhaustive, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False)
+    # an exact (1-Lipschitz) SDF: the culls drop only pieces that cannot hold the answer
+    f_culled, f_exhaustive = (shape.normalised(bary_to_points(tri, b)) for b in (culled, exhaustive))
+    torch.testing.assert_close(f_culled, f_exhaustive, atol=1e-12, rtol=0)
+    torch.testing.assert_close(culled, exhaustive, atol=1e-9, rtol=0)
+    assert culled_points < 0.5 * shape.feature_points
+
+
+def test_search_is_never_worse_than_the_previous_subdivision():
+    shape, det = TorusWithCodes(), detector(seed=1)
+    tri = mixed_triangles(seed=2, m=60)
+    levels = subdivision_levels(tri, det.edge_range[1])
+    ours = detect(det, shape, tri)
+    f_ours = shape.normalised(bary_to_points(tri, ours))
+    for n in torch.unique(levels).tolist():
+        rows = levels == n
+        if n == 1 or n > 7:  # in range: the network's answer (tested above); beyond 7: pieces of level c * 2^k >= n
+            continue
+        f_old = shape.normalised(bary_to_points(tri[rows], naive_subdivided(det, shape, tri[rows], n)))
+        assert bool((f_ours[rows] <= f_old + 1e-12).all()), n
+
+
+def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
+    shape, det = TorusWithCodes(), detector()
+    v, f = grid_mesh(12, size=0.5, z=0.03, jitter=0.004)
+    tri = v[f]
+    plain = detect(det, shape, tri)
+    checked, values = solve_mesh(det, shape, v, f, vertex_check=True)
+    f_plain, f_checked = (shape.normalised(bary_to_points(tri, b)) for b in (plain, checked))
+    f_vertex = shape.normalised(tri.reshape(-1, 3)).reshape(-1, 3).amin(-1)
+    torch.testing.assert_close(f_checked, torch.minimum(f_plain, f_vertex), atol=1e-12, rtol=0)
+    torch.testing.assert_close(values, f_checked, atol=1e-12, rtol=0)  # the distances at the answers come back
+
+
+def test_cutoff_and_known_point_keep_every_contact_and_its_depth():
+    sim = Similarity(4.0, rotation(7), np.array([0.02, -0.1, 0.3]))
+    shape, det = TorusWithCodes(sim), detector()
+    tri_n = torch.cat([mixed_triangles(seed=3), grid_mesh(14, 0.7, 0.04, 0.01)[0][grid_mesh(14)[1]]])
+    tri = torch.as_tensor(sim.to_source(tri_n.reshape(-1, 3).numpy())).reshape(-1, 3, 3)
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    faces = inv.reshape(-1, 3)
+    source = lambda p: shape.normalised(torch.as_tensor(sim.to_normalised(p.numpy()))) / sim.scale  # noqa: E731
+    cutoff = 0.004 / sim.scale
+    full_bary, full = solve_mesh(det, shape, v, faces)
+    centroids = tri.mean(1)
+    known = (torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype), source(centroids))
+    cut_bary, cut = solve_mesh(det, shape, v, faces, cutoff=cutoff, known=known)
+    contacts = full <= cutoff
+    assert 20 < int(contacts.sum()) < len(tri) - 20
+    torch.testing.assert_close(cut <= cutoff, contacts | (known[1] <= cutoff))  # the same contacts (and the centroid's)
+    assert bool((cut[contacts] <= full[contacts] + 1e-12).all())  # depths no worse
+    assert bool((cut[~contacts] > cutoff).all() | (known[1][~contacts] <= cutoff).any())
+    # the distances returned are the SDF's at the returned points, in the source frame
+    torch.testing.assert_close(cut, source(bary_to_points(tri, cut_bary)), atol=1e-9, rtol=0)
+    torch.testing.assert_close(full, source(bary_to_points(tri, full_bary)), atol=1e-9, rtol=0)

@@ -1,0 +1,75 @@
+"""`zoo stress`'s extreme training batches, and malformed meshes given to fit_codes (API and CLI)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import zoo
+from pipeline.stress import CASES, run_stress
+from zoo.errors import DataError
+
+
+def test_stress_reports_extreme_training_batches_ok(tmp_path, monkeypatch):
+    import pipeline.stress as stress
+
+    monkeypatch.setattr(stress, "CASES", [c for c in CASES if c[0] == "extreme training batches"])
+    report = run_stress(tmp_path / "s.json")
+    assert (report["passed"], report["failed"]) == (1, 0), json.dumps(report["cases"], indent=1)[:4000]
+    observed = json.loads((tmp_path / "s.json").read_text())["cases"][0]["observed"]
+    fit, det = observed["fit-sdf"], observed["train-detector"]
+    assert all(v["finite"] for k, v in fit.items() if not k.startswith("refused"))
+    refused = [v for k, v in fit.items() if k.startswith("refused")]
+    assert len(refused) == 3 and all(v.startswith("InputError") for v in refused), refused
+    runs = [v for v in det.values() if isinstance(v, dict)]
+    assert runs and all(v["finite"] and v["clip_held"] for v in runs)
+    # the paper's loss on huge triangles has gradient norms far over grad_clip: clipping engaged
+    assert det["steps clipped in all"] > 0
+
+
+# --------------------------------------------------------------------------- malformed meshes for fit_codes
+
+TETRA_FACES = "f 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+BAD_MESHES = {
+    "nan-vertex.obj": ("v 0 0 0\nv 1 0 0\nv nan 1 0\nv 0 0 1\n" + TETRA_FACES).encode(),
+    "inf-vertex.obj": ("v 0 0 0\nv 1 0 0\nv 0 inf 0\nv 0 0 1\n" + TETRA_FACES).encode(),
+    "empty.obj": b"",
+    "vertices-only.obj": b"v 0 0 0\nv 1 0 0\nv 0 1 0\n",
+    "garbage.ply": b"ply\nthis is not a mesh\x00\xff\xfe" * 20,
+    "garbage.obj": bytes(range(256)) * 8,
+    "mesh.txt": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n" + TETRA_FACES).encode(),
+}
+
+
+@pytest.fixture(scope="module")
+def model():
+    return zoo.load("mugs")
+
+
+@pytest.mark.parametrize("name", [*BAD_MESHES, "missing.obj"])
+def test_fit_codes_refuses_a_malformed_mesh_with_a_data_error(name, model, tmp_path):
+    path = tmp_path / name
+    if name in BAD_MESHES:
+        path.write_bytes(BAD_MESHES[name])
+    with pytest.raises(DataError) as info:
+        model.fit_codes(path, iters=2, n_points=1000)
+    message = str(info.value)
+    assert str(path) in message and len(message) > len(str(path)) + 20  # what was wrong and what to do
+    if "vertex" in name:  # NaN/Inf vertices: trimesh would silently drop them with their faces
+        assert "NaN or Inf" in message
+
+
+@pytest.mark.parametrize("name", ["nan-vertex.obj", "empty.obj", "garbage.ply", "missing.obj"])
+def test_zoo_fit_codes_cli_prints_one_error_line(name, tmp_path, capsys):
+    from cli.main import main
+
+    path = tmp_path / name
+    if name in BAD_MESHES:
+        path.write_bytes(BAD_MESHES[name])
+    with pytest.raises(SystemExit) as info:
+        main(["fit-codes", "mugs", str(path), "--iters", "2", "--no-progress"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and str(path) in err[0], err
+    assert "Traceback" not in "\n".join(err)
