@@ -252,27 +252,28 @@ class AmortizedDetector(nn.Module):
         z = features if self.vertex_features else torch.zeros_like(features)
         perim = edge_lengths(triangles).sum(dim=-1).clamp_min(_TINY_LENGTH)  # (M,)
         offset = (triangles - triangles.mean(dim=1, keepdim=True)) / perim[:, None, None]
-        zs = self._standardised(z)
-        dz = (z - z.mean(dim=1, keepdim=True)) / self.feature_within_std
-        zt = self._standardised(self.triangle_feature_vector(z, offset)).unsqueeze(1).expand(-1, 3, -1)
+        z_tri = self.triangle_feature_vector(z, offset)
         if self.triangle_feature == "none":  # the ablation "without z_tri"
-            zt = torch.zeros_like(zt)
+            z_tri = self.feature_mean.expand_as(z_tri)  # standardises to 0
         i, j = [p[0] for p in _PAIRS], [p[1] for p in _PAIRS]
-        length = (triangles[:, i] - triangles[:, j]).norm(dim=-1) / perim[:, None]  # (M, 3)
         f = vertex_sdf.to(triangles) / perim[:, None]  # (M, 3), scale-free
-        values = torch.stack([length, f[:, i] + f[:, j], (f[:, i] - f[:, j]).abs(), f - (f[:, i] + f[:, j]) / 2], dim=-1)
-        pair = torch.cat([zs[:, i] + zs[:, j], (dz[:, i] - dz[:, j]).abs(), zt, values], dim=-1)  # (M, 3, 3C + 4)
+        values = torch.stack([f[:, i] + f[:, j], (f[:, i] - f[:, j]).abs(), f - (f[:, i] + f[:, j]) / 2], dim=-1)
+        pair = torch.cat([self._edge_pair_inputs(z, triangles, perim, z_tri), values], dim=-1)  # (M, 3, 3C + 4)
         return perim[:, None] * F.softplus(self.h_edge(pair).squeeze(-1))
 
     def _edge_scores(self, z, triangles, perim, z_tri) -> torch.Tensor:
-        """Per-edge curvature scores (M, 3) from [z_i + z_j; |dz_i - dz_j|; z_tri; |v_i - v_j| / p]."""
+        """Per-edge curvature scores (M, 3) of the grid output."""
+        return self.h_edge(self._edge_pair_inputs(z, triangles, perim, z_tri)).squeeze(-1)
+
+    def _edge_pair_inputs(self, z, triangles, perim, z_tri) -> torch.Tensor:
+        """(M, 3, 3C + 1) per edge (slot k: opposite vertex k): [z_i + z_j; |dz_i - dz_j|; z_tri; |v_i - v_j| / p],
+        symmetric in the edge's two ends."""
         zs = self._standardised(z)
         dz = (z - z.mean(dim=1, keepdim=True)) / self.feature_within_std
         i, j = [p[0] for p in _PAIRS], [p[1] for p in _PAIRS]
         length = (triangles[:, i] - triangles[:, j]).norm(dim=-1, keepdim=True) / perim[:, None, None]  # (M, 3, 1)
         zt = self._standardised(z_tri).unsqueeze(1).expand(-1, 3, -1)
-        pair = torch.cat([zs[:, i] + zs[:, j], (dz[:, i] - dz[:, j]).abs(), zt, length], dim=-1)
-        return self.h_edge(pair).squeeze(-1)
+        return torch.cat([zs[:, i] + zs[:, j], (dz[:, i] - dz[:, j]).abs(), zt, length], dim=-1)
 
     def triangle_feature_vector(self, z: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
         """z_tri (M, C) of equation (7) from z (M, 3, C) and centroid offsets (M, 3, 3)."""
