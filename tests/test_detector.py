@@ -401,10 +401,11 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
     report = json.loads(path.read_text())
     assert (tmp_path / "bench_detector.png").stat().st_size > 1000
     seen = report["splits"]["seen"]
-    assert {"amortized", "amortized+fw1", "fw1", "fw3", "fw50", "pgd", "voxel16+fw50"} <= set(seen)
+    assert {"amortized", "amortized+ls", "amortized+fw1", "fw1", "fw3", "fw50", "pgd", "voxel16+fw50"} <= set(seen)
     assert seen["fw50"]["optimality_mean"] < seen["fw1"]["optimality_mean"]
     assert report["timings"]["fw50"]["measured"] is False and report["timings"]["fw3"]["measured"] is True
-    t1 = report["table_1"]["seen"]
-    assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
-    assert set(report["table_3"]) == {"seen", "unseen"} and "full" in report["table_4"]
+    for method in ("amortized", "amortized+ls"):
+        t1 = report["table_1"]["seen"][method]
+        assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
+    assert set(report["table_3"]) == {"seen", "unseen"} and {"full", "full+ls"} <= set(report["table_4"])
     assert "Table I" in format_tables(report)

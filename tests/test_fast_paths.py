@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 
 import numpy as np
@@ -46,12 +48,12 @@ from zoo.neural import (
 SMALL = NeuralSDFConfig(n_codes=32, code_dim=8, hidden=(32, 32))
 
 
-def small_shape(similarity=None, seed=0) -> NeuralShape:
+def small_shape(similarity=None, seed=0, config=SMALL) -> NeuralShape:
     torch.manual_seed(seed)
-    m = NeuralSDF(SMALL, 1, torch.Generator().manual_seed(seed))
+    m = NeuralSDF(config, 1, torch.Generator().manual_seed(seed))
     with torch.no_grad():
         m.codes.normal_(0, 0.3)
-    return NeuralShape("a", m.decoder.requires_grad_(False), SMALL, m.codes[0], m.positions[0], similarity)
+    return NeuralShape("a", m.decoder.requires_grad_(False), config, m.codes[0], m.positions[0], similarity)
 
 
 def rotation(seed):
@@ -115,9 +117,10 @@ def test_features_and_distances_is_features_then_the_decoder(monkeypatch):
     assert shape.normalised is shape.normalised  # built once, sharing the converted networks
 
 
+@pytest.mark.parametrize("smooth_beta", [0.0, 100.0])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_inference_decoder_is_the_decoder_and_follows_its_weights(dtype):
-    shape = small_shape()
+def test_inference_decoder_is_the_decoder_and_follows_its_weights(dtype, smooth_beta):
+    shape = small_shape(config=dataclasses.replace(SMALL, smooth_beta=smooth_beta))
     p = (torch.rand(700, 3, dtype=torch.float64) - 0.5).to(dtype)
     z = shape.features(p)
     dec = shape._cached(dtype, "cpu")[0]
@@ -193,7 +196,21 @@ def test_in_range_answers_are_the_networks_on_per_triangle_features():
     assert bool((subdivision_levels(tri, det.edge_range[1]) == 1).all())
     with torch.no_grad():
         naive = det(tri, shape.features(tri.reshape(-1, 3)).reshape(-1, 3, 32))
-    torch.testing.assert_close(detect(det, shape, tri), naive, atol=1e-6, rtol=0)
+    torch.testing.assert_close(detect(det, shape, tri, polish=False), naive, atol=1e-6, rtol=0)
+
+
+def test_polished_answers_are_one_line_search_step_from_the_networks():
+    shape, det = TorusWithCodes(), detector()
+    v, f = grid_mesh(12, size=0.5, z=0.05, jitter=0.003)
+    tri = v[f].float()
+    net = detect(det, shape, tri, polish=False)
+    vertex_f = shape.normalised(tri.reshape(-1, 3)).reshape(-1, 3)
+    naive = zoo.solvers.line_search_step(shape.normalised, tri, net, vertex_f)
+    polished = detect(det, shape, tri)
+    torch.testing.assert_close(polished, naive, atol=1e-6, rtol=0)
+    assert not torch.allclose(polished, net, atol=1e-3)  # the step did move answers
+    gap = zoo.solvers.optimality(shape.normalised, tri, polished).mean()
+    assert gap < 0.5 * zoo.solvers.optimality(shape.normalised, tri, net).mean()
 
 
 def test_cell_lower_bound_never_exceeds_the_minimum_of_a_1_lipschitz_sdf():
@@ -265,21 +282,23 @@ def test_search_is_never_worse_than_the_previous_subdivision():
     shape, det = TorusWithCodes(), detector(seed=1)
     tri = mixed_triangles(seed=2, m=60)
     levels = subdivision_levels(tri, det.edge_range[1])
-    ours = detect(det, shape, tri)
+    ours = detect(det, shape, tri, polish=False)
     f_ours = shape.normalised(bary_to_points(tri, ours))
     for n in torch.unique(levels).tolist():
         rows = levels == n
         if n == 1 or n > 7:  # in range: the network's answer (tested above); beyond 7: pieces of level c * 2^k >= n
             continue
         f_old = shape.normalised(bary_to_points(tri[rows], naive_subdivided(det, shape, tri[rows], n)))
-        assert bool((f_ours[rows] <= f_old + 1e-12).all()), n
+        # 1e-7: the network runs in float32, and its answers for the same piece differ by rounding
+        # (~1e-8 in f) with the batch they are computed in
+        assert bool((f_ours[rows] <= f_old + 1e-7).all()), (n, float((f_ours[rows] - f_old).max()))
 
 
 def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
     shape, det = TorusWithCodes(), detector()
     v, f = grid_mesh(12, size=0.5, z=0.03, jitter=0.004)
     tri = v[f]
-    plain = detect(det, shape, tri)
+    plain = detect(det, shape, tri, polish=False)
     checked, values = solve_mesh(det, shape, v, f, vertex_check=True)
     f_plain, f_checked = (shape.normalised(bary_to_points(tri, b)) for b in (plain, checked))
     f_vertex = shape.normalised(tri.reshape(-1, 3)).reshape(-1, 3).amin(-1)

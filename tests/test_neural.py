@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -162,3 +163,47 @@ def test_fit_code_cloud_recovers_a_shape_of_the_model():
     after = (NeuralShape("f", m.decoder, SMALL, codes, positions)(pts) - target).abs().mean()
     assert after < 0.5 * before
     assert all(p.requires_grad for p in m.decoder.parameters())  # restored after fitting
+
+
+# --------------------------------------------------------------------------- the smooth activation
+
+
+@pytest.mark.parametrize("slope", [0.0, 0.02])
+def test_smooth_activation_tends_to_leaky_relu_within_its_bound(slope):
+    x = torch.linspace(-3, 3, 20001, dtype=torch.float64)
+    leaky = torch.nn.functional.leaky_relu(x, slope)
+    for beta in (10.0, 100.0, 1000.0):
+        gap = (neural.activation(x, slope, beta) - leaky).abs().max()
+        assert gap <= (1 - slope) * np.log(2) / beta + 1e-12  # the largest gap is at 0
+        assert gap >= 0.99 * (1 - slope) * np.log(2) / beta
+    assert torch.equal(neural.activation(x, slope, 0.0), leaky)
+    y = x.clone()
+    torch.testing.assert_close(neural.activation(y, slope, 100.0, inplace=True), neural.activation(x, slope, 100.0),
+                               rtol=0, atol=1e-15)
+
+
+def _gradient_jumps(config: NeuralSDFConfig) -> float:
+    """Largest change of the decoder's gradient between neighbouring points 1e-6 apart along a line."""
+    torch.manual_seed(0)
+    sdf = NeuralSDF(config, 1, torch.Generator().manual_seed(0)).double()
+    t = torch.linspace(-0.4, 0.4, 8001, dtype=torch.float64)
+    p = (torch.stack([t, 0.3 * t + 0.05, -0.7 * t], -1)).unsqueeze(0).requires_grad_(True)
+    (g,) = torch.autograd.grad(sdf(p, torch.zeros(1, dtype=torch.long)).sum(), p)
+    # neighbours 1e-4 apart; a kink makes the gradient jump by O(|W|) whatever the spacing
+    return float((g[0, 1:] - g[0, :-1]).norm(dim=-1).max() / (t[1] - t[0]))
+
+
+def test_smooth_decoder_has_a_continuous_gradient_and_leaky_relu_does_not():
+    """Equation (12)'s gap vanishes at a minimiser only if the gradient is continuous there: with
+    LeakyReLU it jumps at every kink; with smooth_beta its change is bounded by the spacing."""
+    leaky = _gradient_jumps(dataclasses.replace(SMALL, hidden=(64, 64)))
+    smooth = _gradient_jumps(dataclasses.replace(SMALL, hidden=(64, 64), smooth_beta=100.0))
+    assert smooth < 0.1 * leaky
+
+
+def test_smooth_beta_is_validated_and_round_trips():
+    with pytest.raises(InputError, match="smooth_beta"):
+        NeuralSDFConfig(smooth_beta=-1.0)
+    c = dataclasses.replace(SMALL, smooth_beta=100.0)
+    assert NeuralSDFConfig.from_dict(c.to_dict()) == c
+    assert NeuralSDFConfig.from_dict({k: v for k, v in SMALL.to_dict().items() if k != "smooth_beta"}).smooth_beta == 0.0

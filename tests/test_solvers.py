@@ -217,6 +217,89 @@ def test_warm_started_frank_wolfe_never_worsens_and_improves_a_rough_start(spher
 
 
 # ---------------------------------------------------------------------------------------------
+# line_search_step()
+# ---------------------------------------------------------------------------------------------
+
+
+class DuckSquaredDistance:
+    """f(x) = |x - c|^2 - r: a quadratic, so the line search's parabola is f itself along any line."""
+
+    def __init__(self, center=(0.01, 0.02, -0.03), r=0.01):
+        self.center = torch.tensor(center, dtype=torch.float64)
+        self.r = r
+        self.bounds = (self.center.float() - 1, self.center.float() + 1)
+
+    def __call__(self, points):
+        return (points - self.center.to(points)).square().sum(-1) - self.r
+
+    def value_and_grad(self, points):
+        off = points - self.center.to(points)
+        return off.square().sum(-1) - self.r, 2 * off
+
+
+def test_line_search_step_is_the_exact_line_minimum_of_a_quadratic():
+    sdf = DuckSquaredDistance()
+    tri = triangles_near(sdf.center, 200, seed=11, spread=0.05, distance=0.08)
+    start = torch.nn.functional.one_hot(torch.arange(200) % 3, 3).double()  # each triangle from one vertex
+    out = solvers.line_search_step(sdf, tri, start)
+    # by hand: FW vertex s = argmin grad . v_i, then t* = clamp((c - p) . d / |d|^2, 0, 1) with d = v_s - p
+    for m in range(200):
+        v, b = tri[m].numpy(), start[m].numpy()
+        p = b @ v
+        g = 2 * (p - sdf.center.numpy())
+        s_ = int(np.argmin(v @ g))
+        d = v[s_] - p
+        if g @ d >= 0:
+            expected = b
+        else:
+            t = np.clip((sdf.center.numpy() - p) @ d / (d @ d), 0, 1)
+            expected = (1 - t) * b + t * np.eye(3)[s_]
+        np.testing.assert_allclose(out[m].numpy(), expected, atol=1e-10)
+    assert on_simplex(out) and out.dtype == torch.float64
+
+
+def test_line_search_step_leaves_a_kkt_point_where_it_is(sphere, sphere_case):
+    tri, _, _, ref = sphere_case
+    out = solvers.line_search_step(sphere, tri, ref)
+    np.testing.assert_allclose(out.numpy(), ref.numpy(), atol=1e-6)
+
+
+def test_line_search_step_from_the_best_vertex_reaches_edge_minima(sphere):
+    """On a sphere (smooth, convex) the step from the best vertex lands near each edge minimum next
+    to it, and each line query brings it closer: against the exact closest point (Ericson)."""
+    tri = triangles_near(sphere.center, 400, seed=12, spread=0.04)
+    _, exact = exact_sphere_minimum(sphere, tri)
+    ref_bary = solvers.reference(sphere, tri)
+    on_edge = solvers.minimum_location(ref_bary) == solvers.EDGE
+    fv = sphere(tri.reshape(-1, 3)).reshape(-1, 3)
+    start = torch.nn.functional.one_hot(fv.argmin(-1), 3).double()
+    next_to_best = (ref_bary * start).sum(-1) > 1e-4  # the edge minimum touches the best vertex's edges
+    rows = on_edge & next_to_best
+    assert int(rows.sum()) > 20
+    errors = []
+    for k in (0, 1, 3):
+        out = solvers.line_search_step(sphere, tri, start, fv, line_steps=k)
+        assert on_simplex(out)
+        err = np.linalg.norm(torch.einsum("mv,mvc->mc", out, tri).numpy() - exact, axis=1)[rows.numpy()]
+        errors.append(err.mean() / 0.04)
+    start_err = np.linalg.norm(torch.einsum("mv,mvc->mc", start, tri).numpy() - exact, axis=1)[rows.numpy()].mean() / 0.04
+    assert errors[0] < 0.3 * start_err and errors[1] < errors[0] and errors[2] < errors[1] and errors[2] < 1e-3
+    gap0 = solvers.optimality(sphere, tri, start).mean()
+    assert solvers.optimality(sphere, tri, solvers.line_search_step(sphere, tri, start, fv)).mean() < 0.2 * gap0
+
+
+def test_line_search_step_rejects_bad_input(sphere):
+    tri = triangles_near(sphere.center, 4, seed=3)
+    start = torch.full((4, 3), 1 / 3, dtype=torch.float64)
+    with pytest.raises(InputError, match="vertex_values"):
+        solvers.line_search_step(sphere, tri, start, torch.zeros(4, 2))
+    with pytest.raises(InputError, match="line_steps"):
+        solvers.line_search_step(sphere, tri, start, line_steps=-1)
+    with pytest.raises(InputError):
+        solvers.line_search_step(sphere, tri, torch.ones(4, 3))
+
+
+# ---------------------------------------------------------------------------------------------
 # projected_gradient()
 # ---------------------------------------------------------------------------------------------
 

@@ -62,7 +62,7 @@ TRIANGLE_FEATURE_MODES = ("condition", "context", "temperature", "additive", "no
 OUTPUTS = ("softmax", "sparsemax", "grid", "quadratic")
 _GRID_RESOLUTION = 24  # grid steps per edge: 325 candidate points per triangle
 # the edge (i, j) of each pair slot; slot k is the edge opposite vertex k
-_PAIRS = ((1, 2), (2, 0), (0, 1))
+EDGE_PAIRS = ((1, 2), (2, 0), (0, 1))
 
 # The paper's training-set edge range (normalised frame); triangles longer than the upper
 # bound are subdivided by detect(), see ``subdivision_levels``.
@@ -255,7 +255,7 @@ class AmortizedDetector(nn.Module):
         z_tri = self.triangle_feature_vector(z, offset)
         if self.triangle_feature == "none":  # the ablation "without z_tri"
             z_tri = self.feature_mean.expand_as(z_tri)  # standardises to 0
-        i, j = [p[0] for p in _PAIRS], [p[1] for p in _PAIRS]
+        i, j = [p[0] for p in EDGE_PAIRS], [p[1] for p in EDGE_PAIRS]
         f = vertex_sdf.to(triangles) / perim[:, None]  # (M, 3), scale-free
         values = torch.stack([f[:, i] + f[:, j], (f[:, i] - f[:, j]).abs(), f - (f[:, i] + f[:, j]) / 2], dim=-1)
         pair = torch.cat([self._edge_pair_inputs(z, triangles, perim, z_tri), values], dim=-1)  # (M, 3, 3C + 4)
@@ -270,7 +270,7 @@ class AmortizedDetector(nn.Module):
         symmetric in the edge's two ends."""
         zs = self._standardised(z)
         dz = (z - z.mean(dim=1, keepdim=True)) / self.feature_within_std
-        i, j = [p[0] for p in _PAIRS], [p[1] for p in _PAIRS]
+        i, j = [p[0] for p in EDGE_PAIRS], [p[1] for p in EDGE_PAIRS]
         length = (triangles[:, i] - triangles[:, j]).norm(dim=-1, keepdim=True) / perim[:, None, None]  # (M, 3, 1)
         zt = self._standardised(z_tri).unsqueeze(1).expand(-1, 3, -1)
         return torch.cat([zs[:, i] + zs[:, j], (dz[:, i] - dz[:, j]).abs(), zt, length], dim=-1)
@@ -378,7 +378,7 @@ def grid_soft_argmax(vertex: torch.Tensor, edge: torch.Tensor, grid: torch.Tenso
     On edge (i, j) the score peaks inside at l_i = 1/2 + (y_i - y_j) / (2 c) when c > 0: a
     parabola per edge, the shape an SDF takes along an edge near its minimum.
     """
-    i, j = [p[0] for p in _PAIRS], [p[1] for p in _PAIRS]
+    i, j = [p[0] for p in EDGE_PAIRS], [p[1] for p in EDGE_PAIRS]
     pair = grid[:, i] * grid[:, j]  # (G, 3)
     s = vertex @ grid.T + edge @ pair.T  # (M, G)
     return torch.softmax(s, dim=-1) @ grid
@@ -397,7 +397,7 @@ def quadratic_argmin(values: torch.Tensor, curvature: torch.Tensor) -> torch.Ten
     m = values.shape[0]
     eye = torch.eye(3, dtype=values.dtype, device=values.device)
     cands, scores = [eye.expand(m, 3, 3)], [values]  # the vertices
-    for k, (i, j) in enumerate(_PAIRS):  # each edge's parabola t f_i + (1 - t) f_j - t (1 - t) kappa
+    for k, (i, j) in enumerate(EDGE_PAIRS):  # each edge's parabola t f_i + (1 - t) f_j - t (1 - t) kappa
         kap, fi, fj = curvature[:, k], values[:, i], values[:, j]
         bends = kap > 0
         t = (0.5 - (fi - fj) / (2 * torch.where(bends, kap, torch.ones_like(kap)))).clamp(0, 1)
@@ -461,7 +461,8 @@ _TAG_EDGE = 1 << 62
 _TAG_FACE = 1 << 61
 
 
-def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, vertex_check: bool = False) -> torch.Tensor:
+def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, vertex_check: bool = False,
+           polish: bool = True) -> torch.Tensor:
     """Amortized minimum of ``shape``'s SDF on each triangle: (M, 3, 3) source frame -> bary (M, 3).
 
     ``shape`` is a fitted NeuralShape (or any object with ``features(points_norm (N, 3)) -> (N, C)``,
@@ -476,10 +477,14 @@ def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, ve
     points evaluated on the way (coarse-to-fine search, see :func:`solve_mesh`).
     ``vertex_check=True`` also compares each in-range answer with the triangle's best vertex
     and keeps the lower (one more SDF query per triangle and one per distinct vertex).
+    ``polish=True`` (the default) ends with one Frank-Wolfe step with a parabolic line search from
+    the network's answer (:func:`zoo.solvers.line_search_step`: one value-and-gradient query per
+    triangle); ``polish=False`` returns the network's answer of the single forward pass.
     """
     tri_src = as_triangles(triangles)
     vertices, inverse = unique_rows(tri_src.reshape(-1, 3))
-    bary, _ = solve_mesh(detector, shape, vertices, inverse.reshape(-1, 3), vertex_check=vertex_check, chunk=chunk)
+    bary, _ = solve_mesh(detector, shape, vertices, inverse.reshape(-1, 3), vertex_check=vertex_check, chunk=chunk,
+                         polish=polish)
     return bary
 
 
@@ -710,7 +715,7 @@ def _distances_from_features(shape, points: torch.Tensor, features: torch.Tensor
 
 
 def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: float | None = None, known=None,
-               vertex_check: bool = True, cull: bool = True, chunk: int = 65536):
+               vertex_check: bool = True, cull: bool = True, chunk: int = 65536, polish: bool = False):
     """Amortized minima of ``shape``'s SDF on the triangles ``vertices[faces]``: -> bary (M, 3), values (M,) or None.
 
     ``vertices`` (V, 3) in the shape's source frame (only those ``faces`` (M, 3) name are used),
@@ -728,6 +733,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
       to be > cutoff (what collide needs of a triangle that is no contact).
     * ``cull=False`` evaluates every piece (the exhaustive search; the culls assume the SDF is
       ``LIPSCHITZ``-Lipschitz and otherwise give the same answer).
+    * ``polish``: every in-range row the network answered then takes one line-search step from its
+      answer (:func:`_polish`).
     """
     if cutoff is not None and not vertex_check:
         raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
@@ -805,12 +812,36 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
                 val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(dtype)
             _improve(best_val, best_bary, from_known, r, val, bary)
 
+    in_range = [rows for rows, _, _, n in pieces if n == 1]
+    if polish and in_range:
+        # in-range rows only: on a subdivided triangle the parabola would span the whole long edge,
+        # and the search there has evaluated its candidates already
+        _polish(shape, tri_n, local, table, torch.cat(in_range), best_val, best_bary, from_known, vertex_check, chunk)
+
     values = None
     if vertex_check:
         values = best_val / scale
         if known is not None:
             values = torch.where(from_known, k_val, values)
     return best_bary.to(vertices.dtype), None if values is None else values.to(vertices.dtype)
+
+
+def _polish(shape, tri_n, local, table: _PointTable, rows, best_val, best_bary, from_known, evaluate: bool, chunk: int) -> None:
+    """One Frank-Wolfe step with a parabolic line search (zoo.solvers.line_search_step) from the answers of
+    ``rows``, in place: it fixes what the network's second-order model of the SDF gets wrong from the
+    exact gradient at its answer. With ``evaluate`` the new point is evaluated and kept only where it is lower."""
+    from .solvers import line_search_step
+
+    table.ensure_values(local[rows].reshape(-1))
+    sdf = shape.normalised
+    for sel in rows.split(chunk):
+        bary = line_search_step(sdf, tri_n[sel], best_bary[sel], table.f[local[sel]])
+        if evaluate:
+            with torch.no_grad():
+                val = torch.as_tensor(sdf(bary_to_points(tri_n[sel], bary))).reshape(-1).to(best_val)
+            _improve(best_val, best_bary, from_known, sel, val, bary)
+        else:
+            best_bary[sel] = bary
 
 
 def _search(table: _PointTable, tri_n, rows, c: int, k: int, best_val, best_bary, from_known, cut_n, cull: bool):

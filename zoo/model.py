@@ -98,8 +98,12 @@ class Model:
 
     # ------------------------------------------------------------------ detection
 
-    def detect(self, shape, triangles) -> torch.Tensor:
-        """Amortized minimum-SDF barycentrics of ``triangles`` (M, 3, 3) against ``shape`` -> (M, 3)."""
+    def detect(self, shape, triangles, polish: bool = True) -> torch.Tensor:
+        """Amortized minimum-SDF barycentrics of ``triangles`` (M, 3, 3) against ``shape`` -> (M, 3).
+
+        ``polish`` (default): the network's answer then takes one Frank-Wolfe step with a line search
+        (one value-and-gradient query per triangle); ``polish=False``: the forward pass alone.
+        """
         if self.detector is None:
             raise ModelNotFoundError(
                 f"model {self.name!r} has no detector (its package holds no {DETECTOR_WEIGHTS}); "
@@ -107,7 +111,7 @@ class Model:
             )
         from .detector import detect
 
-        return detect(self.detector, shape, triangles)
+        return detect(self.detector, shape, triangles, polish=polish)
 
     # ------------------------------------------------------------------ devices
 

@@ -51,6 +51,11 @@ class NeuralSDFConfig:
     hidden: tuple[int, ...] = (256, 256, 256)
     skip_input: bool = True  # re-concatenate [z; x] before every hidden layer (DCC-DIF)
     negative_slope: float = 0.02  # LeakyReLU, as DCC-DIF
+    # 0: LeakyReLU (DCC-DIF). > 0: its smooth version, slope x + (1 - slope) softplus_beta(x)
+    # (:func:`activation`). A LeakyReLU decoder is piecewise linear: its gradient jumps at every
+    # kink, so at a minimum on a triangle's edge the KKT gap of equation (12) does not vanish even
+    # at the exact minimiser; a smooth decoder's does.
+    smooth_beta: float = 0.0
     eps: float = 1e-16  # the paper's softening of 1/d^3
     position_init: float = 0.5  # positions start uniform in [-position_init, position_init]^3
     code_init_std: float = 0.01
@@ -59,6 +64,8 @@ class NeuralSDFConfig:
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
         if self.n_codes < 1 or self.code_dim < 1 or not self.hidden or min(self.hidden) < 1:
             raise InputError(f"n_codes, code_dim and every hidden size must be positive, got {self}")
+        if not (0.0 <= self.smooth_beta < float("inf")):
+            raise InputError(f"smooth_beta must be 0 (LeakyReLU) or a positive finite sharpness, got {self.smooth_beta}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -142,6 +149,21 @@ def chunk_size(n_codes: int) -> int:
 # --------------------------------------------------------------------------- the decoder
 
 
+def activation(x: torch.Tensor, negative_slope: float, smooth_beta: float, inplace: bool = False) -> torch.Tensor:
+    """The decoder's nonlinearity, elementwise on x (any shape).
+
+    ``smooth_beta == 0``: LeakyReLU. Otherwise ``slope x + (1 - slope) softplus_beta(x)``, which
+    tends to the LeakyReLU as beta grows (it differs by at most (1 - slope) log(2) / beta, at 0)
+    and has a continuous derivative.
+    """
+    if not smooth_beta:
+        return nn.functional.leaky_relu_(x, negative_slope) if inplace else nn.functional.leaky_relu(x, negative_slope)
+    soft = nn.functional.softplus(x, beta=smooth_beta)
+    if inplace:
+        return x.mul_(negative_slope).add_(soft, alpha=1.0 - negative_slope)
+    return negative_slope * x + (1.0 - negative_slope) * soft
+
+
 class Decoder(nn.Module):
     """MLP on [z; x] -> signed distance; ``skip_input`` re-feeds [z; x] to every hidden layer.
 
@@ -153,6 +175,7 @@ class Decoder(nn.Module):
         n_in = config.code_dim + 3
         self.skip_input = config.skip_input
         self.negative_slope = config.negative_slope
+        self.smooth_beta = config.smooth_beta
         layers, width = [], 0
         for i, h in enumerate(config.hidden):
             fan_in = n_in if i == 0 else (width + n_in if self.skip_input else width)
@@ -167,7 +190,7 @@ class Decoder(nn.Module):
         for i, layer in enumerate(self.hidden):
             if i and self.skip_input:
                 h = torch.cat([h, inp], dim=-1)
-            h = nn.functional.leaky_relu(layer(h), self.negative_slope)
+            h = activation(layer(h), self.negative_slope, self.smooth_beta)
         return self.out(h).squeeze(-1)
 
 
@@ -211,11 +234,11 @@ class InferenceDecoder:
         buf[:, w : w + c] = features
         buf[:, w + c : w + c + 3] = points
         buf[:, w + c + 3] = 1.0
-        slope = self.decoder.negative_slope
-        h = nn.functional.leaky_relu_(buf[:, w:] @ self.weights[0], slope)
+        slope, beta = self.decoder.negative_slope, self.decoder.smooth_beta
+        h = activation(buf[:, w:] @ self.weights[0], slope, beta, inplace=True)
         for weight in self.weights[1:]:
             buf[:, :w] = h
-            h = nn.functional.leaky_relu_(buf @ weight, slope)
+            h = activation(buf @ weight, slope, beta, inplace=True)
         return torch.addmm(self.out_bias, h, self.out_weight).squeeze(-1)
 
 
@@ -433,11 +456,11 @@ class NeuralShape(SDFBase):
             n = chunk_size(self.config.n_codes)
             return torch.cat([dec(z.to(points_norm), p) for p, z in zip(points_norm.split(n), features.split(n))])
 
-    def detect(self, triangles) -> torch.Tensor:
-        """Amortized minimum-SDF barycentrics of triangles (M, 3, 3) in the source frame -> (M, 3)."""
+    def detect(self, triangles, polish: bool = True) -> torch.Tensor:
+        """Amortized minimum-SDF barycentrics of triangles (M, 3, 3) in the source frame -> (M, 3); see Model.detect."""
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
-        return self.model.detect(self, triangles)
+        return self.model.detect(self, triangles, polish=polish)
 
     def detect_mesh(self, vertices: torch.Tensor, faces: torch.Tensor, cutoff: float | None = None, known=None):
         """Contact narrow phase of ``zoo.collide``: minima on the triangles ``vertices[faces]`` (source frame).

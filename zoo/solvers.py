@@ -4,6 +4,8 @@ Solvers, each batched over triangles (M, 3, 3) and returning barycentric coordin
 
 * :func:`frank_wolfe` - MuJoCo's mesh-SDF rule (the paper's baseline and the detector's label);
 * :func:`projected_gradient` - PhysX's triangle-SDF rule;
+* :func:`line_search_step` - one Frank-Wolfe step with a parabolic line search from a given start
+  (what the amortized detector's answer is polished with: one gradient query);
 * :func:`reference` - slow, global and obviously correct: a dense barycentric grid, then a
   pattern search; the yardstick the benchmarks measure the others against.
 
@@ -83,6 +85,91 @@ def frank_wolfe(sdf, triangles, iters: int = 10, init=None, *, warm_start_offset
     # In float32 a hundred convex combinations let the rows drift from summing to 1 by ~1e-7, which
     # moves p off the triangle's plane by as much; put the answer back on the simplex.
     return bary / bary.sum(dim=-1, keepdim=True)
+
+
+def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int = 0) -> torch.Tensor:
+    """One Frank-Wolfe step from ``init`` whose length comes from a parabola, not from a schedule.
+
+    At p = init . v take f(p) and g = grad f(p) (one value-and-gradient query), the Frank-Wolfe
+    vertex s = argmin_i g . v_i and the direction d = v_s - p. Along p + t d, t in [0, 1], f is
+    modelled by the parabola with value f(p) and slope g . d at t = 0 and value f(v_s) at t = 1;
+    its minimiser is the answer. A start that already satisfies the KKT conditions (g . d >= 0:
+    no descent direction inside the triangle) stays where it is. ``line_steps`` more value queries
+    each refine t by successive parabolic interpolation through the lowest sample along the line
+    and its nearest neighbours on both sides.
+
+    From a good start (the detector's answer: the right vertex, or a point near an edge minimum)
+    this one step does what Frank-Wolfe's fixed 2/(k+2) steps need tens of iterations for: the
+    KKT gap of a minimum on an edge shrinks with the square of the start's error, not as 1/k.
+
+    Args:
+        sdf: any SDF.
+        triangles: (M, 3, 3).
+        init: (M, 3) barycentric start.
+        vertex_values: optional (M, 3) f at the vertices (three value queries per triangle if omitted).
+        line_steps: value queries spent on refining the step (>= 0).
+
+    Returns:
+        (M, 3) barycentric coordinates, the dtype of ``triangles``.
+    """
+    tri = _prepare(sdf, triangles)
+    bary = _as_simplex(init, tri, "init")
+    line_steps = _non_negative_int(line_steps, "line_steps")
+    if vertex_values is None:
+        vertex_values = _values(sdf, tri, torch.eye(3, dtype=tri.dtype, device=tri.device).expand(tri.shape[0], 3, 3))
+    fv = _as_float(vertex_values, "vertex_values").to(tri)
+    if fv.shape != bary.shape:
+        raise InputError(f"vertex_values must have shape {tuple(bary.shape)} (one value per vertex), got {tuple(fv.shape)}")
+    rows = torch.arange(tri.shape[0], device=tri.device)
+    f0, g = _value_and_grad(sdf, tri, bary)
+    scores = _vertex_scores(tri, g)  # (M, 3): g . v_i
+    s = scores.argmin(dim=-1)
+    p = bary_to_points(tri, bary)
+    slope = scores[rows, s] - (g * p).sum(-1)  # d f / d t at t = 0, <= 0 up to rounding
+    fs = fv[rows, s]
+    t = _parabola_minimiser(f0, slope, fs)
+    samples_t = [torch.zeros_like(t), torch.ones_like(t)]
+    samples_f = [f0, fs]
+    direction = tri[rows, s] - p
+    for _ in range(line_steps):
+        samples_t.append(t)
+        samples_f.append(sdf(p + t.unsqueeze(-1) * direction).reshape(-1).to(tri))
+        t = _interpolation_step(torch.stack(samples_t, -1), torch.stack(samples_f, -1))
+    t = torch.where(slope < 0, t, torch.zeros_like(t))  # already KKT: stay
+    return (1.0 - t).unsqueeze(-1) * bary + t.unsqueeze(-1) * _one_hot(s, bary)
+
+
+def _parabola_minimiser(f0: torch.Tensor, slope: torch.Tensor, f1: torch.Tensor) -> torch.Tensor:
+    """argmin over [0, 1] of the parabola with q(0) = f0, q'(0) = slope, q(1) = f1: (M,) each -> (M,)."""
+    curvature = f1 - f0 - slope  # q(t) = f0 + slope t + curvature t^2
+    inner = (-slope / (2.0 * curvature.clamp_min(torch.finfo(f0.dtype).tiny))).clamp(0.0, 1.0)
+    end = (f1 < f0).to(f0)  # not bending up: the lower end
+    return torch.where(curvature > 0, inner, end)
+
+
+def _interpolation_step(t: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """Successive parabolic interpolation: samples (M, K) at t in [0, 1] -> the next t (M,).
+
+    The vertex of the parabola through the lowest sample and its nearest neighbours on either side,
+    kept between them; the lowest sample itself where it has no neighbour on a side or the three
+    do not bend upwards.
+    """
+    rows = torch.arange(t.shape[0], device=t.device)
+    best = f.argmin(dim=-1)
+    tb, fb = t[rows, best], f[rows, best]
+    left = torch.where(t < tb.unsqueeze(-1), t, torch.full_like(t, -math.inf)).max(dim=-1)
+    right = torch.where(t > tb.unsqueeze(-1), t, torch.full_like(t, math.inf)).min(dim=-1)
+    tl, tr = left.values, right.values
+    fl, fr = f[rows, left.indices], f[rows, right.indices]
+    bracketed = torch.isfinite(tl) & torch.isfinite(tr)
+    tiny = torch.finfo(t.dtype).tiny
+    tl_, tr_ = torch.where(bracketed, tl, tb - 1), torch.where(bracketed, tr, tb + 1)  # finite placeholders
+    slope_l = (fb - fl) / (tb - tl_).clamp_min(tiny)
+    slope_r = (fr - fb) / (tr_ - tb).clamp_min(tiny)
+    curvature = (slope_r - slope_l) / (tr_ - tl_).clamp_min(tiny)
+    vertex = 0.5 * (tl_ + tb) - slope_l / (2.0 * curvature.clamp_min(tiny))
+    ok = bracketed & (curvature > 0)
+    return torch.where(ok, torch.minimum(torch.maximum(vertex, tl_), tr_), tb)
 
 
 def projected_gradient(
