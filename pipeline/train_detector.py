@@ -15,7 +15,8 @@ NeuralSDF itself, also without labels: the bending of f along edge (i, j),
 
     L_curv = smooth_l1(kappa_k / perimeter, (2 f_i + 2 f_j - 4 f(midpoint)) / perimeter),
 
-the value that makes its quadratic model exact at the edge's midpoint. L_op and L_min add nothing
+the value that makes its quadratic model exact at the edge's midpoint, plus :func:`location_loss`,
+which weighs each curvature error by how far it moves the model's edge minimum. L_op and L_min add nothing
 measurable to it (their gradient vanishes wherever the answer is a vertex) at 20x the cost per step,
 so its preset trains on L_curv alone (``lambda_curvature``, ``use_op_loss``, ``use_min_loss``).
 

@@ -22,6 +22,7 @@ import torch
 import zoo
 from zoo import neural
 from zoo.detector import (
+    POLISH_LINE_STEPS,
     AmortizedDetector,
     cell_lower_bounds,
     detect,
@@ -205,7 +206,7 @@ def test_polished_answers_are_one_line_search_step_from_the_networks():
     tri = v[f].float()
     net = detect(det, shape, tri, polish=False)
     vertex_f = shape.normalised(tri.reshape(-1, 3)).reshape(-1, 3)
-    naive = zoo.solvers.line_search_step(shape.normalised, tri, net, vertex_f)
+    naive = zoo.solvers.line_search_step(shape.normalised, tri, net, vertex_f, line_steps=POLISH_LINE_STEPS)
     polished = detect(det, shape, tri)
     torch.testing.assert_close(polished, naive, atol=1e-6, rtol=0)
     assert not torch.allclose(polished, net, atol=1e-3)  # the step did move answers
