@@ -745,8 +745,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
       to be > cutoff (what collide needs of a triangle that is no contact).
     * ``cull=False`` evaluates every piece (the exhaustive search; the culls assume the SDF is
       ``LIPSCHITZ``-Lipschitz and otherwise give the same answer).
-    * ``polish``: every in-range row the network answered then takes one line-search step from its
-      answer (:func:`_polish`).
+    * ``polish``: each in-range answer of the network takes one line-search step (:func:`_polish`)
+      before it is compared with the vertices and the ``known`` point.
     """
     if cutoff is not None and not vertex_check:
         raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
@@ -817,18 +817,14 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
             bary = torch.einsum("pk,pkv->pv", local_bary, w)
             bary = bary / bary.sum(dim=-1, keepdim=True)  # rows sum to 1 in the working dtype: the point is frame-independent
+            if n == 1 and polish:
+                bary = _polish(shape, tri_n[r], bary, table, i)
             if n == 1 and not vertex_check:
                 best_bary[r] = bary  # the network's answer as is
                 continue
             with torch.no_grad():
                 val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(dtype)
             _improve(best_val, best_bary, from_known, r, val, bary)
-
-    in_range = [rows for rows, _, _, n in pieces if n == 1]
-    if polish and in_range:
-        # in-range rows only: on a subdivided triangle the parabola would span the whole long edge,
-        # and the search there has evaluated its candidates already
-        _polish(shape, tri_n, local, table, torch.cat(in_range), best_val, best_bary, from_known, vertex_check, chunk)
 
     values = None
     if vertex_check:
@@ -838,22 +834,16 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     return best_bary.to(vertices.dtype), None if values is None else values.to(vertices.dtype)
 
 
-def _polish(shape, tri_n, local, table: _PointTable, rows, best_val, best_bary, from_known, evaluate: bool, chunk: int) -> None:
-    """One Frank-Wolfe step with a parabolic line search (zoo.solvers.line_search_step) from the answers of
-    ``rows``, in place: it fixes what the network's second-order model of the SDF gets wrong from the
-    exact gradient at its answer. With ``evaluate`` the new point is evaluated and kept only where it is lower."""
+def _polish(shape, triangles: torch.Tensor, bary: torch.Tensor, table: _PointTable, vertex_rows: torch.Tensor) -> torch.Tensor:
+    """The network's answers ``bary`` (P, 3) on in-range ``triangles`` (P, 3, 3) (normalised frame) after one
+    Frank-Wolfe step with a parabolic line search (:func:`zoo.solvers.line_search_step`): the exact gradient
+    at the answer fixes what the network's model of the SDF got wrong. ``vertex_rows`` (P, 3): the
+    triangles' vertices in ``table``. Subdivided triangles are not polished: the parabola would span a
+    whole long edge, and their search has evaluated its candidates already."""
     from .solvers import line_search_step
 
-    table.ensure_values(local[rows].reshape(-1))
-    sdf = shape.normalised
-    for sel in rows.split(chunk):
-        bary = line_search_step(sdf, tri_n[sel], best_bary[sel], table.f[local[sel]], line_steps=POLISH_LINE_STEPS)
-        if evaluate:
-            with torch.no_grad():
-                val = torch.as_tensor(sdf(bary_to_points(tri_n[sel], bary))).reshape(-1).to(best_val)
-            _improve(best_val, best_bary, from_known, sel, val, bary)
-        else:
-            best_bary[sel] = bary
+    table.ensure_values(vertex_rows.reshape(-1))
+    return line_search_step(shape.normalised, triangles, bary, table.f[vertex_rows], line_steps=POLISH_LINE_STEPS)
 
 
 def _search(table: _PointTable, tri_n, rows, c: int, k: int, best_val, best_bary, from_known, cut_n, cull: bool):

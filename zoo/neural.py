@@ -462,13 +462,15 @@ class NeuralShape(SDFBase):
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
         return self.model.detect(self, triangles, polish=polish)
 
-    def detect_mesh(self, vertices: torch.Tensor, faces: torch.Tensor, cutoff: float | None = None, known=None):
+    def detect_mesh(self, vertices: torch.Tensor, faces: torch.Tensor, cutoff: float | None = None, known=None,
+                    polish: bool = True):
         """Contact narrow phase of ``zoo.collide``: minima on the triangles ``vertices[faces]`` (source frame).
 
         Returns (bary (M, 3), distances (M,) at the returned points). The network's answer is
         compared with each triangle's vertices and the ``known`` point (bary (M, 3), distances
         (M,)), keeping the lowest; with ``cutoff``, triangles proven to stay above it are not
-        solved (their distance is then only proven to exceed it). See :func:`zoo.detector.solve_mesh`.
+        solved (their distance is then only proven to exceed it); ``polish`` takes one line-search
+        step from each in-range answer, kept where lower. See :func:`zoo.detector.solve_mesh`.
         """
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
@@ -476,7 +478,8 @@ class NeuralShape(SDFBase):
             return self.model.detect(self, vertices[faces])  # raises the model's own error
         from .detector import solve_mesh
 
-        return solve_mesh(self.model.detector, self, vertices, faces, cutoff=cutoff, known=known, vertex_check=True)
+        return solve_mesh(self.model.detector, self, vertices, faces, cutoff=cutoff, known=known, vertex_check=True,
+                          polish=polish)
 
     def to(self, device) -> "NeuralShape":
         """A copy whose tensors live on ``device`` (inputs on other devices are handled too)."""
