@@ -168,6 +168,8 @@ def run_split(detector, shapes, triangles, config: BenchConfig, voxels: dict | N
         view = NormalisedView(shape)
         shape_n = view.normalised
         ref = reference(shape_n, tri.double(), resolution=config.reference_resolution).float()
+        # the yardstick's own KKT gap: what no solver can beat on this SDF (0 for a C1 one)
+        per_method.setdefault("reference", []).append(quality(shape_n, tri, ref, ref))
         for name, solve in methods.items():
             per_method[name].append(quality(shape_n, tri, solve(view, shape_n, tri), ref))
             if progress:
