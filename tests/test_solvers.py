@@ -288,6 +288,24 @@ def test_line_search_step_from_the_best_vertex_reaches_edge_minima(sphere):
     assert solvers.optimality(sphere, tri, solvers.line_search_step(sphere, tri, start, fv)).mean() < 0.2 * gap0
 
 
+def test_line_search_step_closes_in_on_a_sharp_minimum_next_to_its_start():
+    """A minimum 2 mm from the edge, 10% of the way from the start: f is V-shaped along the edge, so
+    the first parabola overshoots to where f is above the start's value. The next step must use the
+    start's slope (and not settle back on the start, whose KKT gap is large)."""
+    tri = torch.tensor([[[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.06, 0.0]]], dtype=torch.float64)
+    point = DuckSphere(radius=0.001, center=(0.005, 0.0, 0.003))  # closest edge point at t = 0.1 from vertex 0
+    start = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    gaps, values = [], []
+    for k in (0, 1, 2, 3):
+        out = solvers.line_search_step(point, tri, start, line_steps=k)
+        gaps.append(float(solvers.optimality(point, tri, out)))
+        values.append(float(values_at(point, tri, out)))
+    gap_start = float(solvers.optimality(point, tri, start))
+    assert values[0] > float(values_at(point, tri, start))  # the overshoot the test is about
+    assert gaps[1] < 0.5 * gap_start and gaps[3] < 0.1 * gap_start
+    assert values[3] < values[1] < float(values_at(point, tri, start))
+
+
 def test_line_search_step_rejects_bad_input(sphere):
     tri = triangles_near(sphere.center, 4, seed=3)
     start = torch.full((4, 3), 1 / 3, dtype=torch.float64)

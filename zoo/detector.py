@@ -82,10 +82,10 @@ _DIRECTION_GAIN = 10.0
 # Edge curvatures per perimeter of SDFs near a surface are ~0.02 (mugs, the torus); starting the
 # head there rather than at softplus(0) = 0.7 saves most of a short training run.
 _INITIAL_CURVATURE_LOGIT = -4.0
-# Value queries after the polish's gradient query (zoo.solvers.line_search_step). On 4 seen mugs x
-# 150 bench triangles the polished mean optimality was 6.0e-4 with none, 4.3e-4 with one and 2.6e-4
-# with two; one keeps the polish at about 1.4 value-and-gradient queries.
-POLISH_LINE_STEPS = 1
+# Value queries after the polish's gradient query (zoo.solvers.line_search_step). On the bench's 800
+# seen-mug triangles (4 mugs x 200, mugs@1.3.0's network) the polished mean optimality was 1.3e-3
+# with none, 7.0e-4 with one, 4.8e-4 with two and 4.3e-4 with three.
+POLISH_LINE_STEPS = 2
 # A perimeter floor that keeps degenerate (zero-size) triangles finite.
 _TINY_LENGTH = 1e-12
 

@@ -134,7 +134,7 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
     for _ in range(line_steps):
         samples_t.append(t)
         samples_f.append(sdf(p + t.unsqueeze(-1) * direction).reshape(-1).to(tri))
-        t = _interpolation_step(torch.stack(samples_t, -1), torch.stack(samples_f, -1))
+        t = _interpolation_step(torch.stack(samples_t, -1), torch.stack(samples_f, -1), slope)
     t = torch.where(slope < 0, t, torch.zeros_like(t))  # already KKT: stay
     return (1.0 - t).unsqueeze(-1) * bary + t.unsqueeze(-1) * _one_hot(s, bary)
 
@@ -147,12 +147,13 @@ def _parabola_minimiser(f0: torch.Tensor, slope: torch.Tensor, f1: torch.Tensor)
     return torch.where(curvature > 0, inner, end)
 
 
-def _interpolation_step(t: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
-    """Successive parabolic interpolation: samples (M, K) at t in [0, 1] -> the next t (M,).
+def _interpolation_step(t: torch.Tensor, f: torch.Tensor, slope0: torch.Tensor) -> torch.Tensor:
+    """Successive parabolic interpolation: samples (M, K) at t in [0, 1], the slope (M,) at t = 0 -> the next t (M,).
 
-    The vertex of the parabola through the lowest sample and its nearest neighbours on either side,
-    kept between them; the lowest sample itself where it has no neighbour on a side or the three
-    do not bend upwards.
+    Where the lowest sample is the start (t = 0, whose slope is known), the minimiser of the parabola
+    with that value and slope through the nearest sample beyond it; elsewhere the vertex of the
+    parabola through the lowest sample and its nearest neighbours on either side, kept between
+    them; the lowest sample itself where it has no neighbour on a side or the three do not bend up.
     """
     rows = torch.arange(t.shape[0], device=t.device)
     best = f.argmin(dim=-1)
@@ -169,7 +170,12 @@ def _interpolation_step(t: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
     curvature = (slope_r - slope_l) / (tr_ - tl_).clamp_min(tiny)
     vertex = 0.5 * (tl_ + tb) - slope_l / (2.0 * curvature.clamp_min(tiny))
     ok = bracketed & (curvature > 0)
-    return torch.where(ok, torch.minimum(torch.maximum(vertex, tl_), tr_), tb)
+    step = torch.where(ok, torch.minimum(torch.maximum(vertex, tl_), tr_), tb)
+    # the start is lowest: its value and slope, and the nearest sample beyond, make the parabola
+    at_start = (tb == 0) & torch.isfinite(tr)
+    reach = torch.where(at_start, tr, torch.ones_like(tr))
+    hermite = reach * _parabola_minimiser(fb, slope0 * reach, torch.where(at_start, fr, fb))
+    return torch.where(at_start, hermite, step)
 
 
 def projected_gradient(
