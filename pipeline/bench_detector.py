@@ -40,6 +40,8 @@ JSON_NAME = "bench_detector.json"
 # the detector as zoo's detect() runs it by default: the forward pass, then one line-search step
 POLISHED = "amortized+ls"
 AMORTIZED_METHODS = ("amortized", POLISHED)
+# the same polish from the best vertex: what the polish does without the network
+VERTEX_POLISHED = "vertex+ls"
 PNG_NAME = "bench_detector.png"
 
 
@@ -122,10 +124,17 @@ def median_seconds(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
+# Copies of the bench triangles in a timing batch are shifted by this much per copy (normalised frame).
+_COPY_SHIFT = 1e-5
+
+
 def timing_batch(triangles: torch.Tensor, n: int) -> torch.Tensor:
-    """``n`` triangles (n, 3, 3), the given ones repeated as needed."""
+    """``n`` triangles (n, 3, 3): the given ones repeated as needed, each copy shifted by a further
+    ``_COPY_SHIFT``. The shift keeps every vertex distinct: detect() evaluates each distinct vertex
+    once, so exact copies would time it on a fraction of the vertices FW pays for."""
     reps = -(-n // triangles.shape[0])
-    return triangles.repeat(reps, 1, 1)[:n]
+    shift = _COPY_SHIFT * torch.arange(reps, dtype=triangles.dtype, device=triangles.device).repeat_interleave(triangles.shape[0])
+    return (triangles.repeat(reps, 1, 1) + shift[:, None, None])[:n]
 
 
 # --------------------------------------------------------------------------- the methods
@@ -155,7 +164,20 @@ def method_table(detector, config: BenchConfig) -> dict:
     for k in config.fw_iters:
         methods[f"fw{k}"] = (lambda k: lambda shape, sdf, tri: frank_wolfe(sdf, tri, iters=k))(k)
     methods["pgd"] = lambda shape, sdf, tri: projected_gradient(sdf, tri)
+    methods[VERTEX_POLISHED] = lambda shape, sdf, tri: polished_best_vertex(sdf, tri)
     return methods
+
+
+def polished_best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
+    """The baseline that isolates the network's part in ``amortized+ls``: the same line-search polish
+    (one gradient, POLISH_LINE_STEPS values) from the lowest vertex instead of the network's answer."""
+    from zoo.detector import POLISH_LINE_STEPS
+    from zoo.solvers import line_search_step
+
+    with torch.no_grad():
+        values = torch.as_tensor(sdf(triangles.reshape(-1, 3))).reshape(-1, 3).to(triangles)
+    start = torch.nn.functional.one_hot(values.argmin(dim=-1), 3).to(triangles)
+    return line_search_step(sdf, triangles, start, values, line_steps=POLISH_LINE_STEPS)
 
 
 def run_split(detector, shapes, triangles, config: BenchConfig, voxels: dict | None = None, progress=None) -> dict:
@@ -342,7 +364,8 @@ def pareto_plot(report: dict, path: Path) -> None:
     split, timings = report["splits"]["seen"], report["timings"]
     fig, ax = plt.subplots(figsize=(7, 5))
     groups = {"fw": ("NeuralSDF+FW", "tab:blue"), "amortized+fw": ("amortized+FW refine", "tab:orange"),
-              "amortized": ("amortized, one pass (ours)", "tab:red"), POLISHED: ("amortized + line search (ours)", "darkred"), "pgd": ("projected gradient", "tab:green"),
+              "amortized": ("amortized, one pass (ours)", "tab:red"), POLISHED: ("amortized + line search (ours)", "darkred"),
+              VERTEX_POLISHED: ("best vertex + line search", "tab:gray"), "pgd": ("projected gradient", "tab:green"),
               "voxel": ("VoxelSDF+FW", "tab:purple")}
     for prefix, (label, colour) in groups.items():
         names = [n for n in split if n in timings and _group(n) == prefix]
@@ -366,7 +389,7 @@ def pareto_plot(report: dict, path: Path) -> None:
 
 
 def _group(name: str) -> str:
-    if name == POLISHED:
+    if name in (POLISHED, VERTEX_POLISHED):
         return name
     if name.startswith("amortized+"):
         return "amortized+fw"
@@ -444,6 +467,8 @@ def main(argv=None) -> None:
     parser.add_argument("--unseen-count", type=int, default=3, help="how many test meshes of --unseen-category")
     parser.add_argument("--data", default=None, help="mesh folder for --unseen-category (default $ZOO_DATA)")
     parser.add_argument("--ablations", nargs="*", default=[], help="NAME=DIR detector directories for Table IV")
+    parser.add_argument("--ablations-only", action="store_true", help="measure Table IV alone (the same seen triangles); "
+                        "writes table_4.json")
     parser.add_argument("--out", default="bench-results")
     parser.add_argument("--max-shapes", type=int, default=None)
     parser.add_argument("--n-per-shape", type=int, default=None)
@@ -472,6 +497,16 @@ def main(argv=None) -> None:
     if args.unseen_category:
         unseen += unseen_test_shapes(model, args.unseen_category, args.data, args.unseen_count, args.fit_iters)
     ablations = {name: load_detector(path) for name, path in (a.split("=", 1) for a in args.ablations)}
+    if args.ablations_only:
+        if not ablations:
+            raise InputError("--ablations-only needs --ablations NAME=DIR ...")
+        if config.threads:
+            torch.set_num_threads(int(config.threads))
+        table = ablation_table(ablations, seen, bench_triangles(seen, config), config)
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(args.out) / "table_4.json", json.dumps(table, indent=1) + "\n")
+        print(format_tables({"splits": {}, "table_4": table}))
+        return
     path = run_detector_benchmark(detector, seen, unseen, args.out, config, ablations=ablations or None,
                                   label=f"{model.name}@{model.version}")
     print(format_tables(json.loads(path.read_text())))

@@ -281,7 +281,7 @@ def model_card(name: str, version: str, config: dict, entry: dict, sources: list
         f"| version | {version} |",
         f"| date | {entry['date']} |",
         f"| shapes | {shapes} |",
-        f"| NeuralSDF | {_describe(config.get('sdf') or {}, ('n_codes', 'code_dim', 'hidden', 'storage_dtype'))} |",
+        f"| NeuralSDF | {_describe(config.get('sdf') or {}, ('n_codes', 'code_dim', 'hidden', 'smooth_beta', 'storage_dtype'))} |",
         f"| detector | {_describe(config.get('detector') or {}, ('output', 'vertex_sdf', 'hidden', 'triangle_feature', 'edge_range')) or 'none'} |",
         *[f"| parameters ({key}) | {value:,} |" for key, value in params.items()],
         f"| license | {entry['license']} |",

@@ -15,8 +15,7 @@ NeuralSDF itself, also without labels: the bending of f along edge (i, j),
 
     L_curv = smooth_l1(kappa_k / perimeter, (2 f_i + 2 f_j - 4 f(midpoint)) / perimeter),
 
-the value that makes its quadratic model exact at the edge's midpoint, plus :func:`location_loss`,
-which weighs each curvature error by how far it moves the model's edge minimum. L_op and L_min add nothing
+the value that makes its quadratic model exact at the edge's midpoint. L_op and L_min add nothing
 measurable to it (their gradient vanishes wherever the answer is a vertex) at 20x the cost per step,
 so its preset trains on L_curv alone (``lambda_curvature``, ``use_op_loss``, ``use_min_loss``).
 
@@ -39,7 +38,7 @@ from pathlib import Path
 
 import torch
 
-from zoo.detector import EDGE_PAIRS, AmortizedDetector
+from zoo.detector import AmortizedDetector
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, perimeter
@@ -66,7 +65,6 @@ class TrainConfig:
     use_min_loss: bool = True  # ablation "without L_min" sets False
     create_graph: bool = True  # differentiate L_op through grad f(p) (second order)
     lambda_curvature: float = 0.0  # weight of L_curv (edge-curvature detectors only)
-    lambda_location: float = 0.0  # weight of location_loss inside L_curv (edge-curvature detectors only)
     grad_clip: float = 1.0
     seed: int = 0
     checkpoint_every: int = 200
@@ -92,10 +90,7 @@ class TrainConfig:
 # The default is the quadratic detector: on 8 mugs x 150 fresh triangles (600-3000 steps each) its
 # mean optimality was 6.1e-3 against 1.1e-2 to 1.4e-2 for the softmax, sparsemax and grid heads.
 QUADRATIC = {**AmortizedDetector().config(), "output": "quadratic", "vertex_sdf": True, "hidden": 64}
-# location_loss on top of the plain curvature fit: on 4 seen mugs x 150 bench triangles (the smooth
-# NeuralSDF) the answer's mean optimality fell from 4.9e-3 to 4.2e-3, and after the line-search
-# polish from 8.0e-4 to 6.0e-4
-_CURVATURE_ONLY = dict(detector=QUADRATIC, lambda_curvature=1.0, lambda_location=1.0, use_op_loss=False, use_min_loss=False, lr=2e-3)
+_CURVATURE_ONLY = dict(detector=QUADRATIC, lambda_curvature=1.0, use_op_loss=False, use_min_loss=False, lr=2e-3)
 PRESETS = {
     "quick": TrainConfig(steps=40, batch_size=256, checkpoint_every=20, validate_every=40, validation_size=256, **_CURVATURE_ONLY),
     "default": TrainConfig(steps=4000, checkpoint_every=500, **_CURVATURE_ONLY),
@@ -109,17 +104,39 @@ def preset(name: str, **overrides) -> TrainConfig:
     return replace(PRESETS[name], **overrides)
 
 
+# Steps of the variant that trains the curvature head on L_op + L_min (second order, ~20x a step of L_curv).
+OP_MIN_STEPS = 600
+
+
 def ablation_configs(base: TrainConfig) -> dict[str, TrainConfig]:
-    """The paper's Table IV variants of ``base``: full, without L_op, L_min, vertex features, z_tri."""
+    """The paper's Table IV variants of ``base``: without vertex features, without z_tri, and without
+    each term of the loss it trains on (for a curvature head trained on L_curv: trained on the
+    paper's L_op + L_min instead); a softmax head also gets eq. (8) as printed."""
     det = dict(base.detector)
-    return {
+    variants = {
         "full": base,
-        "no_op_loss": replace(base, use_op_loss=False),
-        "no_min_loss": replace(base, use_min_loss=False),
         "no_vertex_features": replace(base, detector={**det, "vertex_features": False}),
         "no_triangle_feature": replace(base, detector={**det, "triangle_feature": "none"}),
-        "paper_eq8_additive": replace(base, detector={**det, "triangle_feature": "additive"}),
     }
+    if base.lambda_curvature > 0:
+        variants["op_min_loss"] = replace(base, lambda_curvature=0.0, use_op_loss=True, use_min_loss=True,
+                                          steps=min(base.steps, OP_MIN_STEPS))
+    else:
+        variants["no_op_loss"] = replace(base, use_op_loss=False)
+        variants["no_min_loss"] = replace(base, use_min_loss=False)
+        variants["paper_eq8_additive"] = replace(base, detector={**det, "triangle_feature": "additive"})
+    return variants
+
+
+def train_ablations(data: "TrainingData", base: TrainConfig, out_dir, progress: bool = True, log=print) -> dict[str, Path]:
+    """Train every :func:`ablation_configs` variant of ``base`` on ``data`` into ``OUT/<variant>``
+    (each resumable on its own); -> {variant: directory}, for ``bench_detector --ablations``."""
+    out = {}
+    for name, config in ablation_configs(base).items():
+        log(f"ablation {name}")
+        train(data, config, out_dir=Path(out_dir) / name, progress=progress, log=None if progress else log)
+        out[name] = Path(out_dir) / name
+    return out
 
 
 # --------------------------------------------------------------------------- losses
@@ -158,39 +175,13 @@ def midpoint_curvatures(sdf, triangles: torch.Tensor, chunk: int = 65536) -> tor
     return torch.cat(out).to(triangles.dtype)
 
 
-def curvature_loss(detector: AmortizedDetector, data: "TrainingData", rows: torch.Tensor, lambda_location: float = 0.0) -> torch.Tensor:
-    """Mean L_curv over triangles ``rows`` (B,): predicted against midpoint curvature, per perimeter,
-    plus ``lambda_location`` times :func:`location_loss`."""
+def curvature_loss(detector: AmortizedDetector, data: "TrainingData", rows: torch.Tensor) -> torch.Tensor:
+    """Mean L_curv over triangles ``rows`` (B,): predicted against midpoint curvature, per perimeter."""
     tri, feat, _, vsdf = data.batch(rows)
     per = perimeter(tri).clamp_min(1e-12)[:, None]
-    kappa = detector.edge_curvatures(tri, feat, vsdf)
-    target = data.edge_curvature[rows].clamp_min(0)  # bending down acts as straight: a vertex wins
-    loss = torch.nn.functional.smooth_l1_loss(kappa / per, target / per, beta=0.01)
-    if lambda_location:
-        loss = loss + lambda_location * location_loss(kappa, target, vsdf, per)
-    return loss
-
-
-# Weight of the penalty on curvatures that put a minimum inside an edge whose minimum is an end.
-_FALSE_INSIDE_WEIGHT = 10.0
-
-
-def location_loss(kappa: torch.Tensor, target: torch.Tensor, vertex_sdf: torch.Tensor, per: torch.Tensor) -> torch.Tensor:
-    """How far the curvatures kappa (B, 3) move the quadratic model's edge minima from the target curvatures'.
-
-    Along edge (i, j) the model's minimum is at t = 1/2 - (f_i - f_j) / (2 kappa), inside the edge
-    iff kappa > |f_i - f_j|. There a relative error of kappa moves t by |t - 1/2| times it, so the
-    term is |t - 1/2| |log kappa - log kappa_target|; on edges whose minimum is an end, only a kappa
-    large enough to pull the minimum inside costs (relu(kappa - |f_i - f_j|) / perimeter).
-    ``target`` (B, 3) >= 0, ``vertex_sdf`` (B, 3), ``per`` (B, 1) perimeters.
-    """
-    i, j = [p[0] for p in EDGE_PAIRS], [p[1] for p in EDGE_PAIRS]
-    spread = (vertex_sdf[:, i] - vertex_sdf[:, j]).abs()  # (B, 3) |f_i - f_j| per edge slot
-    inside = target > spread
-    offset = (spread / (2 * target.clamp_min(1e-12))).clamp(max=0.5)  # |t - 1/2| of the target's minimum
-    floor = 1e-6 * per
-    relative = (torch.log(kappa + floor) - torch.log(target + floor)).abs()
-    return (inside * offset * relative).mean() + _FALSE_INSIDE_WEIGHT * ((~inside) * torch.relu(kappa - spread) / per).mean()
+    predicted = detector.edge_curvatures(tri, feat, vsdf) / per
+    target = data.edge_curvature[rows].clamp_min(0) / per  # bending down acts as straight: a vertex wins
+    return torch.nn.functional.smooth_l1_loss(predicted, target, beta=0.01)
 
 
 def total_loss(l_op: torch.Tensor, l_min: torch.Tensor, config: TrainConfig) -> torch.Tensor:
@@ -318,7 +309,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
             l_op = l_min = torch.zeros(len(rows), dtype=data.vertices.dtype)
         loss = total_loss(l_op, l_min, config)
         if config.lambda_curvature > 0:
-            loss = loss + config.lambda_curvature * curvature_loss(detector, data, rows, config.lambda_location)
+            loss = loss + config.lambda_curvature * curvature_loss(detector, data, rows)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(detector.parameters(), config.grad_clip)
@@ -551,10 +542,12 @@ def stage_train_detector(run) -> bool:
 
 def train_for_model(model_spec, out_dir, triangles_preset: str = "default", train_preset: str = "default",
                     n_per_shape: int | None = None, steps: int | None = None, detector: dict | None = None,
-                    progress: bool = True, log=print) -> Path:
+                    progress: bool = True, log=print, triangles_file=None, ablations: bool = False) -> Path:
     """Sample (cached) and train a detector for an existing package, outside `zoo fit-category`.
 
     Writes ``OUT/triangles.h5`` (resumable), ``OUT/checkpoint.pt`` and ``OUT/detector.{safetensors,json}``.
+    ``triangles_file``: train on this dataset (e.g. the fit-category run's) instead of sampling one.
+    ``ablations``: train the Table IV variants into ``OUT/<variant>`` instead (:func:`train_ablations`).
     """
     import zoo
 
@@ -564,7 +557,7 @@ def train_for_model(model_spec, out_dir, triangles_preset: str = "default", trai
     model = zoo.load(model_spec) if isinstance(model_spec, (str, Path)) else model_spec
     out = Path(out_dir)
     tconfig = triangles_preset_of(triangles_preset, **({"n_per_shape": n_per_shape} if n_per_shape else {}))
-    triangles = out / "triangles.h5"
+    triangles = Path(triangles_file) if triangles_file else out / "triangles.h5"
     if not triangles.is_file():
         sample_triangle_dataset([(s, model.shape(s)) for s in model.shapes], triangles, tconfig, progress=progress,
                                 provenance={"model": f"{model.name}@{model.version}"})
@@ -574,7 +567,10 @@ def train_for_model(model_spec, out_dir, triangles_preset: str = "default", trai
         overrides["detector"] = {**AmortizedDetector().config(), **detector}
     config = preset(train_preset, **overrides)
     data = training_data_from_file(triangles, model, model.shapes)
-    train(data, config, out_dir=out, progress=progress, log=log)
+    if ablations:
+        train_ablations(data, config, out, progress=progress, log=log)
+    else:
+        train(data, config, out_dir=out, progress=progress, log=log)
     return out
 
 
@@ -589,13 +585,16 @@ def main(argv=None) -> None:
     parser.add_argument("--n-per-shape", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--detector", default=None, help="JSON of AmortizedDetector config fields to override")
+    parser.add_argument("--triangles", default=None, help="train on this triangle dataset (HDF5) instead of sampling one")
+    parser.add_argument("--ablations", action="store_true", help="train the Table IV variants into OUT/<variant>")
     parser.add_argument("--threads", type=int, default=0)
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     train_for_model(args.model, args.out, args.triangles_preset, args.preset, args.n_per_shape, args.steps,
-                    json.loads(args.detector) if args.detector else None, progress=not args.no_progress)
+                    json.loads(args.detector) if args.detector else None, progress=not args.no_progress,
+                    triangles_file=args.triangles, ablations=args.ablations)
 
 
 if __name__ == "__main__":
