@@ -28,6 +28,10 @@ class BenchOptions:
     threads: int | None
     progress: bool = True
     scenes: list[str] | None = None  # --scenes: scene names or files (default: the paper's four)
+    model: str | None = None  # --detector: the package whose detector is measured
+    unseen_category: str | None = None  # --detector: its test meshes, fitted with fit_codes, are the unseen split
+    max_shapes: int | None = None  # --detector: seen shapes measured
+    n_per_shape: int = 200  # --detector: bench triangles per shape
 
 
 def _run_solvers(opts: BenchOptions) -> None:
@@ -89,7 +93,22 @@ def _run_scenes(opts: BenchOptions) -> None:
     console.print(f"written: {path}")
 
 
-_SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers, "scenes": _run_scenes}
+def _run_detector(opts: BenchOptions) -> None:
+    import json
+
+    from rich.console import Console
+
+    from pipeline.bench_detector import BenchConfig, bench_model, format_tables
+
+    config = BenchConfig(threads=opts.threads, n_per_shape=opts.n_per_shape)
+    path = bench_model(opts.model, opts.out, config=config, max_shapes=opts.max_shapes, unseen_category=opts.unseen_category,
+                       progress=opts.progress)
+    console = Console(width=max(Console().width, 150))
+    console.print(format_tables(json.loads(path.read_text())))
+    console.print(f"written: {path} and the Pareto plot beside it")
+
+
+_SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers, "scenes": _run_scenes, "detector": _run_detector}
 
 
 @app.command()
@@ -102,10 +121,18 @@ def bench(
     no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     scenes: bool = typer.Option(False, "--scenes", help="The paper's Table II analog: contacts, triangles, time and memory per scene and method."),
     scene: list[str] = typer.Option(None, "--scene", help="With --scenes: a scene name or .toml file (repeatable; default the paper's four)."),
+    detector: str = typer.Option(None, "--detector", help="MODEL (name, name@version or package folder): its detector "
+                                 "against FW, PGD and VoxelSDF+FW, Tables I, III; JSON and a Pareto PNG."),
+    unseen_category: str = typer.Option(None, "--unseen-category", help="With --detector: fit this category's first 3 test "
+                                        "meshes with fit_codes as the unseen split (needs $ZOO_DATA)."),
+    max_shapes: int = typer.Option(4, "--max-shapes", min=1, help="With --detector: seen shapes measured."),
+    n_per_shape: int = typer.Option(200, "--n-per-shape", min=1, help="With --detector: triangles per shape."),
 ):
     """Measure error against run time and write the results as JSON (solver section by default)."""
-    chosen = [name for name, on in {"solvers": solvers, "scenes": scenes}.items() if on] or [DEFAULT_SECTION]
+    chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None}.items() if on]
+    chosen = chosen or [DEFAULT_SECTION]
     opts = BenchOptions(out=out, triangles=triangles, seed=seed, threads=threads or None, progress=not no_progress,
-                        scenes=scene or None)
+                        scenes=scene or None, model=detector, unseen_category=unseen_category, max_shapes=max_shapes,
+                        n_per_shape=n_per_shape)
     for name in chosen:
         _SECTIONS[name](opts)

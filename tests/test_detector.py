@@ -5,7 +5,9 @@ cloud for the vertex features, in a frame that a known similarity maps to the no
 """
 
 import itertools
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -413,3 +415,29 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
         assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
     assert set(report["table_3"]) == {"seen", "unseen"} and {"full", "full+ls"} <= set(report["table_4"])
     assert "Table I" in format_tables(report)
+
+
+def test_zoo_bench_detector_runs_the_detector_section(monkeypatch, tmp_path):
+    """`zoo bench --detector MODEL` hands its options to pipeline.bench_detector.bench_model and prints its tables."""
+    import pipeline.bench_detector as bd
+    from typer.testing import CliRunner
+
+    from cli.main import app, register_commands
+
+    calls = {}
+
+    def fake_bench_model(model, out, config, max_shapes, unseen_category, progress):
+        calls.update(model=model, out=out, n=config.n_per_shape, threads=config.threads, max_shapes=max_shapes,
+                     unseen=unseen_category)
+        path = Path(out) / bd.JSON_NAME
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"splits": {}, "table_4": {"full": {"optimality_mean": 1e-3, "nme_mean": 0.01}}}))
+        return path
+
+    monkeypatch.setattr(bd, "bench_model", fake_bench_model)
+    register_commands()
+    result = CliRunner().invoke(app, ["bench", "--detector", "mugs@1.3.0", "--unseen-category", "mugs", "--max-shapes", "2",
+                                      "--n-per-shape", "7", "--threads", "1", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert calls == {"model": "mugs@1.3.0", "out": tmp_path, "n": 7, "threads": 1, "max_shapes": 2, "unseen": "mugs"}
+    assert "Table IV full" in result.output
