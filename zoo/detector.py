@@ -38,11 +38,12 @@ minimum over the triangle (:func:`quadratic_argmin`). The vertex values make the
 Features are standardised by fixed statistics of the training set (buffers saved with the weights).
 
 :func:`detect` then polishes each in-range answer by one Frank-Wolfe step with a parabolic line
-search (:func:`zoo.solvers.line_search_step`: the exact gradient at the answer, and one value
-along the step). The network's curvatures put the answer on the right vertex or edge and near
-the edge's minimum, so that one step gets what Frank-Wolfe's fixed steps need tens of gradient
-queries for; ``polish=False`` gives the forward pass alone. The NeuralSDF must have a continuous
-gradient for either to reach the KKT conditions (equation (12)): see ``NeuralSDFConfig.smooth_beta``.
+search (:func:`zoo.solvers.line_search_step`: the exact gradient at the answer, and
+``POLISH_LINE_STEPS`` values along the step), which gets what Frank-Wolfe's fixed steps need tens
+of gradient queries for; ``polish=False`` gives the forward pass alone. The polish does most of the
+work: from the best vertex instead of the network's answer it comes within 20% (README, detector
+bench). The NeuralSDF must have a continuous gradient for either to reach the KKT conditions
+(equation (12)): see ``NeuralSDFConfig.smooth_beta``.
 
 Every per-vertex network is shared across the three vertices and every pooling is symmetric
 (softmax-weighted sum; the two cosines are sorted), so permuting the vertices permutes the
@@ -83,8 +84,8 @@ _DIRECTION_GAIN = 10.0
 # head there rather than at softplus(0) = 0.7 saves most of a short training run.
 _INITIAL_CURVATURE_LOGIT = -4.0
 # Value queries after the polish's gradient query (zoo.solvers.line_search_step). On the bench's 800
-# seen-mug triangles (4 mugs x 200, mugs@1.3.0's network) the polished mean optimality was 1.3e-3
-# with none, 7.0e-4 with one, 4.8e-4 with two and 4.3e-4 with three.
+# seen-mug triangles (4 mugs x 200, mugs@1.3.0) the polished mean optimality was 1.4e-3 with none,
+# 6.5e-4 with one, 3.6e-4 with two and 3.2e-4 with three.
 POLISH_LINE_STEPS = 2
 # A perimeter floor that keeps degenerate (zero-size) triangles finite.
 _TINY_LENGTH = 1e-12
