@@ -65,8 +65,8 @@ PRESETS = {
     "quick": TriangleConfig(n_per_shape=256, n_reference=32, reference_resolution=16, sampler_batch=4096),
     # CPU-sized; "paper" is 100k per shape. The detector is data-bound: in a trial on 54 mugs x 500,
     # half of the triangles gave a mean optimality on fresh ones of 5.7e-3 against 4.2e-3 for all, so
-    # the default takes 1500 per shape (81k for the mugs: 7-20 min of certifying and labelling by
-    # FW-100 on one core, with the machine shared or not).
+    # the default takes 1500 per shape (81k for the mugs: ~20 min of certifying and labelling by
+    # FW-100 on one core of the shared machine).
     "default": TriangleConfig(n_per_shape=1500, n_reference=50, sampler_batch=4096),
     "paper": TriangleConfig(),
 }
