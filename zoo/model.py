@@ -102,7 +102,8 @@ class Model:
         """Amortized minimum-SDF barycentrics of ``triangles`` (M, 3, 3) against ``shape`` -> (M, 3).
 
         ``polish`` (default): the network's answer then takes one Frank-Wolfe step with a line search
-        (one value-and-gradient query per triangle); ``polish=False``: the forward pass alone.
+        (one value-and-gradient query and up to ``zoo.detector.POLISH_LINE_STEPS`` value queries per
+        triangle); ``polish=False``: the forward pass alone.
         """
         if self.detector is None:
             raise ModelNotFoundError(
