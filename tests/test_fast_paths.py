@@ -295,6 +295,34 @@ def test_search_is_never_worse_than_the_previous_subdivision():
         assert bool((f_ours[rows] <= f_old + 1e-7).all()), (n, float((f_ours[rows] - f_old).max()))
 
 
+def test_a_subdivided_triangle_polishes_its_lowest_piece_inside_that_piece():
+    shape, det = TorusWithCodes(), detector(seed=3)
+    tri = mixed_triangles(seed=4, m=80)
+    levels = subdivision_levels(tri, det.edge_range[1])
+    rows = (levels > 1) & (levels <= 7)  # searched flat: with cull=False every piece of level n reaches the network
+    tri = tri[rows]
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=True)
+    sdf = shape.normalised
+    for i, n in enumerate(levels[rows].tolist()):
+        corners = subdivision_barycentrics(n, tri.dtype)  # (P, 3, 3) pieces in parent barycentrics
+        pieces = torch.einsum("pjk,kc->pjc", corners, tri[i])
+        with torch.no_grad():
+            local = det(pieces.float(), shape.features(pieces.reshape(-1, 3)).reshape(-1, 3, 32)).double()
+        answers = torch.einsum("pj,pjk->pk", local, corners)
+        f_answers = sdf(bary_to_points(tri[i].expand(len(answers), 3, 3), answers))
+        low = int(f_answers.argmin())
+        piece_f = sdf(pieces[low])
+        polished = zoo.solvers.line_search_step(sdf, pieces[low : low + 1], local[low : low + 1], piece_f[None],
+                                                line_steps=POLISH_LINE_STEPS)[0] @ corners[low]
+        grid_f = sdf(pieces.reshape(-1, 3))
+        expected = min(float(f_answers.min()), float(grid_f.min()), float(sdf((polished @ tri[i])[None])))
+        assert abs(float(sdf((ours[i] @ tri[i])[None])) - expected) < 1e-7, (i, n)
+    unpolished, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=False)
+    gap = lambda b: zoo.solvers.optimality(sdf, tri, b).mean()  # noqa: E731
+    assert gap(ours) < 0.5 * gap(unpolished)
+
+
 def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
     shape, det = TorusWithCodes(), detector()
     v, f = grid_mesh(12, size=0.5, z=0.03, jitter=0.004)

@@ -491,8 +491,9 @@ def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, ve
     and keeps the lower (one more SDF query per triangle and one per distinct vertex).
     ``polish=True`` (the default) ends with one Frank-Wolfe step with a parabolic line search from
     the network's answer (:func:`zoo.solvers.line_search_step`: one value-and-gradient query and
-    ``POLISH_LINE_STEPS`` value queries per triangle); ``polish=False`` returns the network's answer
-    of the single forward pass.
+    ``POLISH_LINE_STEPS`` value queries per triangle; on a subdivided triangle, from the lowest
+    piece's answer, inside that piece); ``polish=False`` returns the network's answer of the single
+    forward pass.
     """
     tri_src = as_triangles(triangles)
     vertices, inverse = unique_rows(tri_src.reshape(-1, 3))
@@ -747,7 +748,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     * ``cull=False`` evaluates every piece (the exhaustive search; the culls assume the SDF is
       ``LIPSCHITZ``-Lipschitz and otherwise give the same answer).
     * ``polish``: each in-range answer of the network takes one line-search step (:func:`_polish`)
-      before it is compared with the vertices and the ``known`` point.
+      before it is compared with the vertices and the ``known`` point; a subdivided triangle's
+      lowest piece answer takes one inside its piece (:func:`_polish_lowest_pieces`).
     """
     if cutoff is not None and not vertex_check:
         raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
@@ -809,23 +811,27 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             if found is not None:
                 pieces.append(found)
 
+    lowest_pieces = []  # (rows, point indices, local bary, piece corners in parent bary, values) of subdivided rows
     for rows, idx, grid, n in pieces:
         for sel in torch.arange(rows.numel(), device=v_n.device).split(min(chunk, _NETWORK_CHUNK)):
             r, i, g = rows[sel], idx[sel], grid[sel]
             vsdf = table.f[i].to(param) if detector.vertex_sdf else None
             with torch.no_grad():
                 local_bary = detector(table.coords[i].to(param), table.z[i].to(param), vsdf).to(dtype)  # (P, 3)
-            w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
-            bary = torch.einsum("pk,pkv->pv", local_bary, w)
-            bary = bary / bary.sum(dim=-1, keepdim=True)  # rows sum to 1 in the working dtype: the point is frame-independent
             if n == 1 and polish:
-                bary = _polish(shape, tri_n[r], bary, table, i)
+                local_bary = _polish(shape, tri_n[r], local_bary, table, i)
+            w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
+            bary = _to_parent(local_bary, w)
             if n == 1 and not vertex_check:
                 best_bary[r] = bary  # the network's answer as is
                 continue
             with torch.no_grad():
                 val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(dtype)
             _improve(best_val, best_bary, from_known, r, val, bary)
+            if n > 1 and polish:
+                lowest_pieces.append((r, i, local_bary, w, val))
+    if lowest_pieces:
+        _polish_lowest_pieces(shape, tri_n, table, lowest_pieces, best_val, best_bary, from_known)
 
     values = None
     if vertex_check:
@@ -839,12 +845,42 @@ def _polish(shape, triangles: torch.Tensor, bary: torch.Tensor, table: _PointTab
     """The network's answers ``bary`` (P, 3) on in-range ``triangles`` (P, 3, 3) (normalised frame) after one
     Frank-Wolfe step with a parabolic line search (:func:`zoo.solvers.line_search_step`): the exact gradient
     at the answer fixes what the network's model of the SDF got wrong. ``vertex_rows`` (P, 3): the
-    triangles' vertices in ``table``. Subdivided triangles are not polished: the parabola would span a
-    whole long edge, and their search has evaluated its candidates already."""
+    triangles' vertices in ``table``. A subdivided triangle is polished on its lowest piece
+    (:func:`_polish_lowest_pieces`), not as a whole: the parabola would span a whole long edge."""
     from .solvers import line_search_step
 
     table.ensure_values(vertex_rows.reshape(-1))
     return line_search_step(shape.normalised, triangles, bary, table.f[vertex_rows], line_steps=POLISH_LINE_STEPS)
+
+
+def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """Barycentrics (P, 3) in a piece -> in its parent triangle, given the piece's corners in parent barycentrics (P, 3, 3).
+    Rows are renormalised to sum to 1 in the working dtype, so the point does not depend on the frame."""
+    bary = torch.einsum("pk,pkv->pv", local_bary, corners)
+    return bary / bary.sum(dim=-1, keepdim=True)
+
+
+def _polish_lowest_pieces(shape, tri_n, table: _PointTable, found: list, best_val, best_bary, from_known) -> None:
+    """Polish, for each subdivided triangle, the network's answer on its lowest piece, inside that piece.
+
+    ``found``: per network call, (rows (P,), the pieces' point rows (P, 3), local bary (P, 3), corners
+    in parent barycentrics (P, 3, 3), values at the answers (P,)). One polish per subdivided triangle
+    rather than per piece: the other pieces' answers are higher already, and the polish moves a point
+    by a fraction of its piece. The piece is in the trained range, so the parabola spans no more than
+    the polish of an in-range triangle does.
+    """
+    rows, idx, local, corners, values = (torch.cat(parts) for parts in zip(*found))
+    order = torch.argsort(values, stable=True)
+    order = order[torch.argsort(rows[order], stable=True)]  # by row, lowest value first
+    first = torch.ones_like(order, dtype=torch.bool)
+    first[1:] = rows[order][1:] != rows[order][:-1]
+    pick = order[first]
+    piece_bary = _polish(shape, table.coords[idx[pick]], local[pick], table, idx[pick])
+    bary = _to_parent(piece_bary, corners[pick])
+    r = rows[pick]
+    with torch.no_grad():
+        val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(best_val)
+    _improve(best_val, best_bary, from_known, r, val, bary)
 
 
 def _search(table: _PointTable, tri_n, rows, c: int, k: int, best_val, best_bary, from_known, cut_n, cull: bool):
