@@ -5,7 +5,10 @@ bolt-nut}.toml``) and every method, one row: contacts, candidate and total trian
 of a whole ``zoo.collide`` call (median of ``repeats`` after one warm-up call) and the peak
 memory of a fresh process that loads the scene and collides it once. Methods:
 
-* ``amortized``: one pass of the model's detector;
+* ``amortized``: one pass of the model's detector, polished (``zoo.collide``'s default);
+* ``amortized-no-polish``: the same with ``polish=False`` (no gradient query in the narrow phase);
+  its own optimality and the FW iterations that match it are reported beside it
+  (``no_polish_optimality_mean``, ``fw_matched_iters_no_polish``);
 * ``amortized+refine``: the same, then ``refine`` Frank-Wolfe steps warm-started from it;
 * ``fw-matched``: NeuralSDF + Frank-Wolfe at the fewest iterations whose mean optimality
   (equation (12), over the candidate triangles) is no worse than the amortized answer's (the
@@ -77,7 +80,8 @@ from .scenes import Scene, load_scene, scene_from_dict
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 PAPER_SCENES = ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")
-METHODS = ("amortized", "amortized+refine", "fw-matched", "voxel-fw-256", "voxel-fw-512")
+METHODS = ("amortized", "amortized-no-polish", "amortized+refine", "fw-matched", "voxel-fw-256", "voxel-fw-512")
+NO_POLISH = "amortized-no-polish"
 FW_SWEEP = (1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 50, 100)
 RESULT_NAME = "scenes.json"
 MAX_VOXEL_SAMPLES = 4_000_000  # about 100 s of NeuralSDF queries on one CPU core
@@ -332,6 +336,8 @@ def method_call(bs: BenchScene, name: str, fw_iters: int, refine: int, region=No
     """(kwargs for zoo.collide, the SDF to pass) of one method row."""
     if name == "amortized":
         return {"method": "amortized"}, bs.scene.sdf
+    if name == NO_POLISH:
+        return {"method": "amortized", "polish": False}, bs.scene.sdf
     if name == "amortized+refine":
         return {"method": "amortized", "refine": refine}, bs.scene.sdf
     if name == "fw-matched":
@@ -353,7 +359,8 @@ def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
     """The amortized narrow phase against one value-and-gradient pass at the candidates' centroids.
 
     ``detect_s`` / ``ratio``: the narrow phase as ``zoo.collide(method="amortized")`` runs it
-    (its ``timings["narrow"]``, depths included); ``detect_only_s`` / ``detect_only_ratio``:
+    (its ``timings["narrow"]``, depths included); ``detect_no_polish_s`` / ``ratio_no_polish``: the
+    same with ``polish=False``; ``detect_only_s`` / ``detect_only_ratio``:
     ``sdf.detect(candidates)``, the network's answers alone. All timed interleaved, medians.
     """
     sdf = bs.scene.sdf
@@ -362,26 +369,29 @@ def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
     if bs.has_detector:
         fns["detect_only"] = lambda: sdf.detect(tri)
         fns["collide"] = lambda: collide_once(bs, sdf, {"method": "amortized"})
+        fns["collide_no_polish"] = lambda: collide_once(bs, sdf, {"method": "amortized", "polish": False})
     seconds, results = interleaved_seconds(fns, repeats)
     vg_s = seconds["value_and_grad"]
     out = {"candidates": int(tri.shape[0]), "value_and_grad_s": vg_s}
     if bs.has_detector:
         phases = median_phases(results["collide"])
-        out.update(detect_s=phases["narrow"], ratio=phases["narrow"] / vg_s, detect_only_s=seconds["detect_only"],
+        no_polish = median_phases(results["collide_no_polish"])["narrow"]
+        out.update(detect_s=phases["narrow"], ratio=phases["narrow"] / vg_s, detect_no_polish_s=no_polish,
+                   ratio_no_polish=no_polish / vg_s, detect_only_s=seconds["detect_only"],
                    detect_only_ratio=seconds["detect_only"] / vg_s, collide_s=seconds["collide"], collide_phases_s=phases,
                    definition="detect_s: collide's amortized narrow phase (timings['narrow'], depths included); "
                               "detect_only_s: sdf.detect(candidates); value_and_grad_s: one pass at the candidates' centroids")
     return out
 
 
-def amortized_answers(sdf, tri: torch.Tensor) -> torch.Tensor:
-    """What ``zoo.collide(method="amortized")`` answers on the triangles, without a margin to stop at:
-    ``detect_mesh`` (the network's answer or a lower vertex) where the SDF has it, else ``detect``."""
+def amortized_answers(sdf, tri: torch.Tensor, polish: bool = True) -> torch.Tensor:
+    """What ``zoo.collide(method="amortized", polish=polish)`` answers on the triangles, without a margin to
+    stop at: ``detect_mesh`` (the network's answer or a lower vertex) where the SDF has it, else ``detect``."""
     if callable(getattr(sdf, "detect_mesh", None)):
         from zoo.detector import unique_rows
 
         vertices, inverse = unique_rows(tri.reshape(-1, 3))
-        return sdf.detect_mesh(vertices, inverse.reshape(-1, 3))[0]
+        return sdf.detect_mesh(vertices, inverse.reshape(-1, 3), polish=polish)[0]
     return sdf.detect(tri)
 
 
@@ -391,16 +401,20 @@ def measure_scene(bs: BenchScene, methods=METHODS, repeats: int = 5, refine: int
     s = bs.scene
     idx, tri = candidate_set(bs)
     sweep = fw_sweep(s.sdf, tri) if len(tri) else []
-    amortized_opt = network_opt = None
+    amortized_opt = network_opt = no_polish_opt = None
     if bs.has_detector and len(tri):
         with torch.no_grad():
             network_opt = float(zoo.solvers.optimality(s.sdf, tri, s.sdf.detect(tri)).mean())
             amortized_opt = float(zoo.solvers.optimality(s.sdf, tri, amortized_answers(s.sdf, tri)).mean())
+            no_polish_opt = float(zoo.solvers.optimality(s.sdf, tri, amortized_answers(s.sdf, tri, polish=False)).mean())
     k = matched_iterations(sweep, amortized_opt) if sweep else 10
     report = {
         "scene": s.name, "sdf": s.sdf_label, "sdf_kind": bs.sdf_kind, "sdf_note": bs.note, "mesh": s.mesh_label, "margin": s.margin,
         "n_triangles": int(bs.faces.shape[0]), "n_candidates": int(idx.numel()),
-        "amortized_optimality_mean": amortized_opt, "network_optimality_mean": network_opt, "fw_matched_iters": k, "fw_sweep": sweep,
+        "amortized_optimality_mean": amortized_opt, "network_optimality_mean": network_opt, "fw_matched_iters": k,
+        "no_polish_optimality_mean": no_polish_opt,
+        "fw_matched_iters_no_polish": matched_iterations(sweep, no_polish_opt) if sweep and no_polish_opt is not None else None,
+        "fw_sweep": sweep,
         "narrow_phase": narrow_phase_ratio(bs, tri, repeats) if len(tri) else None,
         "paper": PAPER_TABLE_II.get(s.name), "rows": [],
     }
@@ -526,6 +540,8 @@ def format_table(report: dict) -> list[list[str]]:
         paper = sc.get("paper") or {}
         for r in sc["rows"]:
             name = r["method"] + (f" ({sc['fw_matched_iters']} it)" if r["method"] == "fw-matched" else "")
+            if r["method"] == NO_POLISH and sc.get("fw_matched_iters_no_polish"):
+                name += f" (= FW {sc['fw_matched_iters_no_polish']} it)"
             ref = paper.get("amortized_s") if r["method"] == "amortized" else paper.get("fw_s") if r["method"] == "fw-matched" else None
             kind = "model" if sc["sdf_kind"] == "model" else "stand-in"
             if "skipped" in r:

@@ -15,6 +15,7 @@ import trimesh
 import zoo
 from zoo.collide import METHODS, candidate_triangles, clear_voxel_cache
 from zoo.errors import InputError
+from zoo.geometry import bary_to_points
 from zoo.voxel import VoxelSDF
 
 # -- meshes and references ------------------------------------------------------------------
@@ -386,12 +387,39 @@ def test_amortized_on_a_model_shape_hands_the_candidates_over_as_a_mesh():
     assert float((p.depths - c.depths[common]).max()) > 1e-4 / s.scale  # the vertex check matters here
 
 
+def test_polish_false_gives_the_unpolished_narrow_phase_and_only_for_amortized():
+    shape = zoo.load("mugs").shape("hoi4d_mug_0001")
+    s = shape.similarity
+    vertices, faces = plane_grid(24, size=1.0)
+    vertices = s.to_source(vertices + np.array([0.0, 0.0, 0.05]) + 0.004 * np.random.default_rng(1).normal(size=vertices.shape))
+    margin = 0.003 / s.scale
+    fast = zoo.collide(shape, (vertices, faces), margin=margin, method="amortized", polish=False)
+    tri = torch.as_tensor(vertices)[torch.as_tensor(faces)][fast.triangles]
+    # the unpolished narrow phase is solve_mesh's answer without the line search (the centroids known, as collide has them)
+    known = (torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype), shape(tri.mean(dim=1)))
+    expected, _ = shape.detect_mesh(*_indexed(tri), known=known, polish=False)
+    np.testing.assert_allclose(fast.points.numpy(), bary_to_points(tri, expected).numpy(), atol=1e-9)
+    polished = zoo.collide(shape, (vertices, faces), margin=margin, method="amortized")
+    both = torch.isin(polished.triangles, fast.triangles)
+    assert bool(both.any()) and not torch.allclose(polished.points[both], fast.points, atol=1e-6)
+    with pytest.raises(InputError, match="polish=False applies to"):
+        zoo.collide(shape, (vertices, faces), margin=margin, method="fw", polish=False)
+
+
+def _indexed(tri: torch.Tensor):
+    """Triangles (M, 3, 3) -> (distinct vertices (V, 3), faces (M, 3))."""
+    from zoo.detector import unique_rows
+
+    v, inverse = unique_rows(tri.reshape(-1, 3))
+    return v, inverse.reshape(-1, 3)
+
+
 def test_a_detect_mesh_of_the_wrong_shape_is_a_typed_error():
     class Broken(zoo.Sphere):
         def detect(self, triangles):
             return torch.full(triangles.shape[:2], 1 / 3, dtype=triangles.dtype)
 
-        def detect_mesh(self, vertices, faces, cutoff=None, known=None):
+        def detect_mesh(self, vertices, faces, cutoff=None, known=None, polish=True):
             return torch.zeros(len(faces), 2), torch.zeros(len(faces))
 
     vertices, faces = plane_grid(8)

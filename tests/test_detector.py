@@ -24,7 +24,7 @@ from pipeline.train_detector import (
     train,
 )
 from pipeline.triangle_sampling import sample_constrained_triangles
-from zoo.detector import AmortizedDetector, detect, quadratic_argmin, subdivision_barycentrics
+from zoo.detector import AmortizedDetector, detect, quadratic_argmin, quadratic_minimum, subdivision_barycentrics
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, perimeter
 from zoo.meshes import Similarity
@@ -259,6 +259,9 @@ def test_quadratic_argmin_is_the_minimum_of_a_dense_grid_search():
     grid = brute_force_quadratic_min(values, curvature)
     assert (ours <= grid + 1e-12).all()  # never above the grid's best
     assert (grid - ours).max() < 1e-3  # and the grid comes close to it: the same minimum
+    same, lowest = quadratic_minimum(values, curvature)  # the model's value there, which predict() gives
+    assert torch.equal(same, bary)
+    torch.testing.assert_close(lowest, ours, atol=1e-12, rtol=0)
 
 
 def test_exact_curvatures_solve_a_quadratic_sdf_exactly():

@@ -323,6 +323,31 @@ def test_a_subdivided_triangle_polishes_its_lowest_piece_inside_that_piece():
     assert gap(ours) < 0.5 * gap(unpolished)
 
 
+def test_a_quadratic_head_evaluates_only_the_piece_its_own_model_puts_lowest():
+    # The quadratic head knows its model's value at its answer, so solve_mesh ranks a subdivided
+    # triangle's pieces by it and evaluates (and polishes) only the lowest: the answer is the lower
+    # of the grid points and that one piece's polished answer, computed here piece by piece.
+    shape, det = TorusWithCodes(), detector(seed=5, output="quadratic", vertex_sdf=True)
+    tri = mixed_triangles(seed=6, m=80)
+    levels = subdivision_levels(tri, det.edge_range[1])
+    rows = (levels > 1) & (levels <= 7)
+    tri = tri[rows]
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=True)
+    sdf = shape.normalised
+    for i, n in enumerate(levels[rows].tolist()):
+        corners = subdivision_barycentrics(n, tri.dtype)
+        pieces = torch.einsum("pjk,kc->pjc", corners, tri[i])
+        piece_f = sdf(pieces.reshape(-1, 3)).reshape(-1, 3)
+        with torch.no_grad():
+            local, predicted = det.predict(pieces.float(), shape.features(pieces.reshape(-1, 3)).reshape(-1, 3, 32), piece_f.float())
+        low = int(predicted.argmin())
+        polished = zoo.solvers.line_search_step(sdf, pieces[low : low + 1], local[low : low + 1].double(), piece_f[low : low + 1],
+                                                line_steps=POLISH_LINE_STEPS)[0] @ corners[low]
+        expected = min(float(piece_f.min()), float(sdf((polished @ tri[i])[None])))
+        assert abs(float(sdf((ours[i] @ tri[i])[None])) - expected) < 1e-6, (i, n)
+
+
 def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
     shape, det = TorusWithCodes(), detector()
     v, f = grid_mesh(12, size=0.5, z=0.03, jitter=0.004)

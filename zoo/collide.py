@@ -188,6 +188,7 @@ def collide(
     iters: int | None = None,
     refine: int = 0,
     voxel_resolution=256,
+    polish: bool = True,
 ) -> Contacts:
     """Contacts between an SDF and a triangle mesh, one per triangle within ``margin``.
 
@@ -207,6 +208,9 @@ def collide(
             accepted for "amortized" (use ``refine``).
         refine: Frank-Wolfe steps warm-started from the method's answer (0: none).
         voxel_resolution: samples per axis of the grid for "voxel-fw".
+        polish: "amortized" on a model's shape only: one line-search step from each answer
+            (``zoo.detector.solve_mesh``). False is faster (no gradient query in the narrow phase)
+            and less precise: the scene bench (``zoo bench --scenes``) measures both.
 
     Returns:
         :class:`Contacts`, rows ordered by triangle index.
@@ -224,6 +228,8 @@ def collide(
 
         resolution_per_axis(voxel_resolution)  # refuse a bad resolution even when nothing is near
     refine = _count(refine, "refine")
+    if not polish and method != "amortized":
+        raise InputError(f'polish=False applies to method="amortized" only (got method={method!r}); drop it')
     margin = _margin(margin)
     vertices, faces = _mesh_arrays(mesh)
     sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(vertices.device)
@@ -248,7 +254,7 @@ def collide(
     with torch.no_grad():
         depths = None
         if method == "amortized" and callable(getattr(sdf, "detect_mesh", None)):
-            bary, depths = _amortized_mesh(sdf, local, faces[candidates], tri, f_centroid, margin)
+            bary, depths = _amortized_mesh(sdf, local, faces[candidates], tri, f_centroid, margin, polish)
         else:
             bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
         if refine:
@@ -274,10 +280,10 @@ def collide(
 
 
 def _amortized_mesh(sdf, local: torch.Tensor, faces: torch.Tensor, tri: torch.Tensor, f_centroid: torch.Tensor,
-                    margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+                    margin: float, polish: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """The amortized narrow phase on the candidates as an indexed mesh: (bary (C, 3), depths (C,))."""
     known = (torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype, device=tri.device), f_centroid)
-    bary, depths = sdf.detect_mesh(local, faces, cutoff=margin, known=known)
+    bary, depths = sdf.detect_mesh(local, faces, cutoff=margin, known=known, polish=polish)
     bary, depths = torch.as_tensor(bary).to(tri), torch.as_tensor(depths).reshape(-1).to(tri)
     if bary.shape != tri.shape[:2] or depths.shape != tri.shape[:1] or not bool(torch.isfinite(bary).all()):
         raise InputError(

@@ -220,6 +220,16 @@ class AmortizedDetector(nn.Module):
         scores = self.logits(triangles, features, vertex_sdf)
         return sparsemax(scores) if self.output == "sparsemax" else torch.softmax(scores, dim=-1)
 
+    def predict(self, triangles: torch.Tensor, features: torch.Tensor, vertex_sdf: torch.Tensor | None = None):
+        """The forward pass with the model's own estimate of the minimum: (bary (M, 3), value (M,) or None).
+
+        The ``quadratic`` output knows the value of its model at its answer (exact at the vertices);
+        the other outputs have no model of the SDF and give None.
+        """
+        if self.output == "quadratic":
+            return quadratic_minimum(vertex_sdf, self.edge_curvatures(triangles, features, vertex_sdf))
+        return self(triangles, features, vertex_sdf), None
+
     def logits(self, triangles: torch.Tensor, features: torch.Tensor, vertex_sdf: torch.Tensor | None = None) -> torch.Tensor:
         """The pre-softmax scores (M, 3) (temperature applied)."""
         return self.scores(triangles, features, vertex_sdf)[0]
@@ -397,7 +407,12 @@ def grid_soft_argmax(vertex: torch.Tensor, edge: torch.Tensor, grid: torch.Tenso
 
 
 def quadratic_argmin(values: torch.Tensor, curvature: torch.Tensor) -> torch.Tensor:
-    """Exact minimiser (M, 3) over the triangle of q(l) = sum_i l_i f_i - sum_k l_i l_j kappa_k.
+    """Exact minimiser (M, 3) over the triangle of q(l) = sum_i l_i f_i - sum_k l_i l_j kappa_k: see :func:`quadratic_minimum`."""
+    return quadratic_minimum(values, curvature)[0]
+
+
+def quadratic_minimum(values: torch.Tensor, curvature: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact minimiser (M, 3) over the triangle of q(l) = sum_i l_i f_i - sum_k l_i l_j kappa_k, and q there (M,).
 
     ``values`` f (M, 3) at the vertices, ``curvature`` kappa (M, 3) (slot k: edge (i, j) opposite
     vertex k). For f(x) = a + b.x + x^T H x / 2 on the triangle, q is f itself with
@@ -431,8 +446,8 @@ def quadratic_argmin(values: torch.Tensor, curvature: torch.Tensor) -> torch.Ten
     q = (lam * values).sum(-1) - lam[:, 1] * lam[:, 2] * k0 - lam[:, 2] * lam[:, 0] * k1 - lam[:, 0] * lam[:, 1] * k2
     cands.append(lam.unsqueeze(1))
     scores.append(torch.where(inside, q, torch.full_like(q, math.inf)).unsqueeze(1))
-    best = torch.cat(scores, dim=1).argmin(dim=1)  # (M,) of 7 candidates
-    return torch.cat(cands, dim=1)[torch.arange(m, device=values.device), best]
+    lowest, best = torch.cat(scores, dim=1).min(dim=1)  # (M,) of 7 candidates
+    return torch.cat(cands, dim=1)[torch.arange(m, device=values.device), best], lowest
 
 
 def sparsemax(scores: torch.Tensor) -> torch.Tensor:
@@ -749,7 +764,7 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
       ``LIPSCHITZ``-Lipschitz and otherwise give the same answer).
     * ``polish``: each in-range answer of the network takes one line-search step (:func:`_polish`)
       before it is compared with the vertices and the ``known`` point; a subdivided triangle's
-      lowest piece answer takes one inside its piece (:func:`_polish_lowest_pieces`).
+      lowest piece answer takes one inside its piece (:func:`_solve_lowest_pieces`).
     """
     if cutoff is not None and not vertex_check:
         raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
@@ -811,16 +826,22 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             if found is not None:
                 pieces.append(found)
 
-    lowest_pieces = []  # (rows, point indices, local bary, piece corners in parent bary, values) of subdivided rows
+    # subdivided rows: (rows, point indices, local bary, piece corners in parent bary, values) of their pieces
+    lowest_pieces = []
     for rows, idx, grid, n in pieces:
         for sel in torch.arange(rows.numel(), device=v_n.device).split(min(chunk, _NETWORK_CHUNK)):
             r, i, g = rows[sel], idx[sel], grid[sel]
             vsdf = table.f[i].to(param) if detector.vertex_sdf else None
             with torch.no_grad():
-                local_bary = detector(table.coords[i].to(param), table.z[i].to(param), vsdf).to(dtype)  # (P, 3)
+                local_bary, predicted = detector.predict(table.coords[i].to(param), table.z[i].to(param), vsdf)
+            local_bary = local_bary.to(dtype)
+            w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
+            if n > 1 and predicted is not None:
+                # ranked by the network's own estimate: only each row's lowest piece is evaluated (below)
+                lowest_pieces.append((r, i, local_bary, w, predicted.to(dtype)))
+                continue
             if n == 1 and polish:
                 local_bary = _polish(shape, tri_n[r], local_bary, table, i)
-            w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
             bary = _to_parent(local_bary, w)
             if n == 1 and not vertex_check:
                 best_bary[r] = bary  # the network's answer as is
@@ -831,7 +852,7 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             if n > 1 and polish:
                 lowest_pieces.append((r, i, local_bary, w, val))
     if lowest_pieces:
-        _polish_lowest_pieces(shape, tri_n, table, lowest_pieces, best_val, best_bary, from_known)
+        _solve_lowest_pieces(shape, tri_n, table, lowest_pieces, best_val, best_bary, from_known, polish)
 
     values = None
     if vertex_check:
@@ -846,7 +867,7 @@ def _polish(shape, triangles: torch.Tensor, bary: torch.Tensor, table: _PointTab
     Frank-Wolfe step with a parabolic line search (:func:`zoo.solvers.line_search_step`): the exact gradient
     at the answer fixes what the network's model of the SDF got wrong. ``vertex_rows`` (P, 3): the
     triangles' vertices in ``table``. A subdivided triangle is polished on its lowest piece
-    (:func:`_polish_lowest_pieces`), not as a whole: the parabola would span a whole long edge."""
+    (:func:`_solve_lowest_pieces`), not as a whole: the parabola would span a whole long edge."""
     from .solvers import line_search_step
 
     table.ensure_values(vertex_rows.reshape(-1))
@@ -860,14 +881,15 @@ def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     return bary / bary.sum(dim=-1, keepdim=True)
 
 
-def _polish_lowest_pieces(shape, tri_n, table: _PointTable, found: list, best_val, best_bary, from_known) -> None:
-    """Polish, for each subdivided triangle, the network's answer on its lowest piece, inside that piece.
+def _solve_lowest_pieces(shape, tri_n, table: _PointTable, found: list, best_val, best_bary, from_known, polish: bool) -> None:
+    """For each subdivided triangle, its lowest piece's answer, polished inside that piece when ``polish``.
 
     ``found``: per network call, (rows (P,), the pieces' point rows (P, 3), local bary (P, 3), corners
-    in parent barycentrics (P, 3, 3), values at the answers (P,)). One polish per subdivided triangle
-    rather than per piece: the other pieces' answers are higher already, and the polish moves a point
-    by a fraction of its piece. The piece is in the trained range, so the parabola spans no more than
-    the polish of an in-range triangle does.
+    in parent barycentrics (P, 3, 3), values (P,)): the SDF at the answers, or the network's own
+    estimate of it (``AmortizedDetector.predict``), which spares one SDF query per piece. One answer is
+    evaluated and polished per triangle rather than per piece: the polish moves a point by a fraction of
+    its piece, and the piece is in the trained range, so the parabola spans no more than the polish of an
+    in-range triangle does (a whole subdivided triangle's edge would be too long for it).
     """
     rows, idx, local, corners, values = (torch.cat(parts) for parts in zip(*found))
     order = torch.argsort(values, stable=True)
@@ -875,7 +897,9 @@ def _polish_lowest_pieces(shape, tri_n, table: _PointTable, found: list, best_va
     first = torch.ones_like(order, dtype=torch.bool)
     first[1:] = rows[order][1:] != rows[order][:-1]
     pick = order[first]
-    piece_bary = _polish(shape, table.coords[idx[pick]], local[pick], table, idx[pick])
+    piece_bary = local[pick]
+    if polish:
+        piece_bary = _polish(shape, table.coords[idx[pick]], piece_bary, table, idx[pick])
     bary = _to_parent(piece_bary, corners[pick])
     r = rows[pick]
     with torch.no_grad():
