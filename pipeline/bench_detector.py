@@ -6,6 +6,9 @@ Methods, each on the same triangles, timed in the same run:
 * ``amortized+fw{k}``: k Frank-Wolfe steps warm-started from the amortized answer;
 * ``fw{k}``: NeuralSDF + Frank-Wolfe from the centroid (MuJoCo's rule), k iterations;
 * ``pgd``: projected gradient (PhysX's rule);
+* ``vertex+ls``: the polish from the best vertex (what the line search does without the network);
+* ``midpoint-quadratic``: the curvature head's model with exact curvatures, from six SDF values
+  per triangle (vertices and edge midpoints): the best any curvature head's forward pass can do;
 * ``voxel{r}+fw{k}``: the NeuralSDF sampled on an r^3 grid (zoo.VoxelSDF), then Frank-Wolfe
   on the grid; its answer is judged on the NeuralSDF.
 
@@ -42,6 +45,8 @@ POLISHED = "amortized+ls"
 AMORTIZED_METHODS = ("amortized", POLISHED)
 # the same polish from the best vertex: what the polish does without the network
 VERTEX_POLISHED = "vertex+ls"
+# the curvature head's model with exact curvatures (three more values per triangle): what no curvature head can beat
+MIDPOINT_QUADRATIC = "midpoint-quadratic"
 PNG_NAME = "bench_detector.png"
 
 
@@ -165,7 +170,20 @@ def method_table(detector, config: BenchConfig) -> dict:
         methods[f"fw{k}"] = (lambda k: lambda shape, sdf, tri: frank_wolfe(sdf, tri, iters=k))(k)
     methods["pgd"] = lambda shape, sdf, tri: projected_gradient(sdf, tri)
     methods[VERTEX_POLISHED] = lambda shape, sdf, tri: polished_best_vertex(sdf, tri)
+    methods[MIDPOINT_QUADRATIC] = lambda shape, sdf, tri: midpoint_quadratic(sdf, tri)
     return methods
+
+
+def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
+    """The ceiling of the curvature head's model: the exact minimum of the quadratic that matches the SDF at
+    the three vertices and the three edge midpoints (six value queries per triangle, no network)."""
+    from zoo.detector import quadratic_argmin
+
+    from .train_detector import midpoint_curvatures
+
+    with torch.no_grad():
+        values = torch.as_tensor(sdf(triangles.reshape(-1, 3))).reshape(-1, 3).to(triangles)
+    return quadratic_argmin(values, midpoint_curvatures(sdf, triangles).clamp_min(0))
 
 
 def polished_best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
@@ -366,6 +384,7 @@ def pareto_plot(report: dict, path: Path) -> None:
     groups = {"fw": ("NeuralSDF+FW", "tab:blue"), "amortized+fw": ("amortized+FW refine", "tab:orange"),
               "amortized": ("amortized, one pass (ours)", "tab:red"), POLISHED: ("amortized + line search (ours)", "darkred"),
               VERTEX_POLISHED: ("best vertex + line search", "tab:gray"), "pgd": ("projected gradient", "tab:green"),
+              MIDPOINT_QUADRATIC: ("quadratic through 6 exact values", "tab:brown"),
               "voxel": ("VoxelSDF+FW", "tab:purple")}
     for prefix, (label, colour) in groups.items():
         names = [n for n in split if n in timings and _group(n) == prefix]
@@ -389,7 +408,7 @@ def pareto_plot(report: dict, path: Path) -> None:
 
 
 def _group(name: str) -> str:
-    if name in (POLISHED, VERTEX_POLISHED):
+    if name in (POLISHED, VERTEX_POLISHED, MIDPOINT_QUADRATIC):
         return name
     if name.startswith("amortized+"):
         return "amortized+fw"
