@@ -470,7 +470,8 @@ class NeuralShape(SDFBase):
         compared with each triangle's vertices and the ``known`` point (bary (M, 3), distances
         (M,)), keeping the lowest; with ``cutoff``, triangles proven to stay above it are not
         solved (their distance is then only proven to exceed it); ``polish`` takes one line-search
-        step from each in-range answer, kept where lower. See :func:`zoo.detector.solve_mesh`.
+        step from each answer (a subdivided triangle's: on its lowest piece) before that comparison.
+        See :func:`zoo.detector.solve_mesh`.
         """
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
