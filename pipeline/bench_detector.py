@@ -40,7 +40,7 @@ from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points
 
 JSON_NAME = "bench_detector.json"
-# the detector as zoo's detect() runs it by default: the forward pass, then one line-search step
+# the detector as zoo's detect() runs it by default: the vertex test, then the forward pass and line-search steps
 POLISHED = "amortized+ls"
 AMORTIZED_METHODS = ("amortized", POLISHED)
 # the same polish from the best vertex: what the polish does without the network
@@ -187,15 +187,19 @@ def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
 
 
 def polished_best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
-    """The baseline that isolates the network's part in ``amortized+ls``: the same line-search polish
-    (one gradient, POLISH_LINE_STEPS values) from the lowest vertex instead of the network's answer."""
-    from zoo.detector import POLISH_LINE_STEPS
-    from zoo.solvers import line_search_step
+    """The baseline that isolates the network's part in ``amortized+ls``: the same polish (the vertex test,
+    then ``POLISH_ROUNDS`` line-search steps) from the lowest vertex instead of the network's answer."""
+    from zoo.detector import POLISH_LINE_STEPS, POLISH_ROUNDS
+    from zoo.solvers import line_search_steps
 
     with torch.no_grad():
         values = torch.as_tensor(sdf(triangles.reshape(-1, 3))).reshape(-1, 3).to(triangles)
-    start = torch.nn.functional.one_hot(values.argmin(dim=-1), 3).to(triangles)
-    return line_search_step(sdf, triangles, start, values, line_steps=POLISH_LINE_STEPS)
+    lowest = values.argmin(dim=-1)
+    vertex = torch.nn.functional.one_hot(lowest, 3).to(triangles)
+    f, g = sdf.value_and_grad(bary_to_points(triangles, vertex))
+    f, g = torch.as_tensor(f).reshape(-1).to(triangles), torch.as_tensor(g).to(triangles)
+    return line_search_steps(sdf, triangles, vertex, values, POLISH_ROUNDS, line_steps=POLISH_LINE_STEPS, start=(f, g),
+                             fallback=(vertex, f, g))
 
 
 def run_split(detector, shapes, triangles, config: BenchConfig, voxels: dict | None = None, progress=None) -> dict:

@@ -306,6 +306,21 @@ def test_line_search_step_closes_in_on_a_sharp_minimum_next_to_its_start():
     assert values[3] < values[1] < float(values_at(point, tri, start))
 
 
+def test_line_search_step_with_a_given_start_equals_the_one_that_queries_it(sphere):
+    """``start=(f, grad f)`` replaces the step's own value-and-gradient query and nothing else; a
+    wrong start changes the answer (so it is used)."""
+    tri = triangles_near(sphere.center, 64, seed=5, spread=0.04)
+    fv = sphere(tri.reshape(-1, 3)).reshape(-1, 3)
+    init = torch.nn.functional.one_hot(fv.argmin(-1), 3).double()
+    f0, g0 = sphere.value_and_grad(torch.einsum("mv,mvc->mc", init, tri))
+    own = solvers.line_search_step(sphere, tri, init, fv, line_steps=2)
+    given = solvers.line_search_step(sphere, tri, init, fv, line_steps=2, start=(f0, g0))
+    torch.testing.assert_close(given, own, atol=0, rtol=0)
+    assert not torch.allclose(solvers.line_search_step(sphere, tri, init, fv, line_steps=2, start=(f0, -g0)), own)
+    with pytest.raises(InputError, match="start"):
+        solvers.line_search_step(sphere, tri, init, fv, start=(f0, g0[:, :2]))
+
+
 def test_line_search_step_rejects_bad_input(sphere):
     tri = triangles_near(sphere.center, 4, seed=3)
     start = torch.full((4, 3), 1 / 3, dtype=torch.float64)

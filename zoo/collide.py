@@ -208,9 +208,10 @@ def collide(
             accepted for "amortized" (use ``refine``).
         refine: Frank-Wolfe steps warm-started from the method's answer (0: none).
         voxel_resolution: samples per axis of the grid for "voxel-fw".
-        polish: "amortized" on a model's shape only: one line-search step from each answer
-            (``zoo.detector.solve_mesh``). False is faster (no gradient query in the narrow phase)
-            and less precise: the scene bench (``zoo bench --scenes``) measures both.
+        polish: "amortized" on a model's shape only: the vertex test, then line-search steps from
+            the network's answers where it fails (``zoo.detector.solve_mesh``). False is the forward
+            pass alone (no gradient query in the narrow phase), less precise: the scene bench
+            (``zoo bench --scenes``) measures both.
 
     Returns:
         :class:`Contacts`, rows ordered by triangle index.

@@ -101,9 +101,11 @@ class Model:
     def detect(self, shape, triangles, polish: bool = True) -> torch.Tensor:
         """Amortized minimum-SDF barycentrics of ``triangles`` (M, 3, 3) against ``shape`` -> (M, 3).
 
-        ``polish`` (default): the network's answer then takes one Frank-Wolfe step with a line search
-        (one value-and-gradient query and up to ``zoo.detector.POLISH_LINE_STEPS`` value queries per
-        triangle); ``polish=False``: the forward pass alone.
+        ``polish`` (default): a triangle whose lowest vertex satisfies the KKT conditions (its gradient
+        there, one query per distinct vertex) is answered at that vertex; the others take the network's
+        answer and ``zoo.detector.POLISH_ROUNDS`` Frank-Wolfe steps with a line search (each one
+        value-and-gradient query and up to ``zoo.detector.POLISH_LINE_STEPS`` value queries);
+        ``polish=False``: the forward pass alone.
         """
         if self.detector is None:
             raise ModelNotFoundError(

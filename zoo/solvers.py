@@ -5,6 +5,7 @@ Solvers, each batched over triangles (M, 3, 3) and returning barycentric coordin
 * :func:`frank_wolfe` - MuJoCo's mesh-SDF rule (the paper's baseline and the detector's label);
 * :func:`projected_gradient` - PhysX's triangle-SDF rule;
 * :func:`line_search_step` - one Frank-Wolfe step with a parabolic line search from a given start
+* :func:`line_search_steps` - several in a row, optionally falling back on a known lower point
   (what the amortized detector's answer is polished with: one gradient and a few value queries);
 * :func:`reference` - slow, global and obviously correct: a dense barycentric grid, then a
   pattern search; the yardstick the benchmarks measure the others against.
@@ -87,7 +88,7 @@ def frank_wolfe(sdf, triangles, iters: int = 10, init=None, *, warm_start_offset
     return bary / bary.sum(dim=-1, keepdim=True)
 
 
-def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int = 0) -> torch.Tensor:
+def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int = 0, start=None) -> torch.Tensor:
     """One Frank-Wolfe step from ``init`` whose length comes from a parabola, not from a schedule.
 
     At p = init . v take f(p) and g = grad f(p) (one value-and-gradient query), the Frank-Wolfe
@@ -107,6 +108,8 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
         init: (M, 3) barycentric start.
         vertex_values: optional (M, 3) f at the vertices (three value queries per triangle if omitted).
         line_steps: value queries spent on refining the step (>= 0).
+        start: optional (f (M,), grad f (M, 3)) at ``init``, where the caller has them already (the
+            value-and-gradient query is then skipped).
 
     Returns:
         (M, 3) barycentric coordinates, the dtype of ``triangles``.
@@ -120,7 +123,7 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
     if fv.shape != bary.shape:
         raise InputError(f"vertex_values must have shape {tuple(bary.shape)} (one value per vertex), got {tuple(fv.shape)}")
     rows = torch.arange(tri.shape[0], device=tri.device)
-    f0, g = _value_and_grad(sdf, tri, bary)
+    f0, g = _value_and_grad(sdf, tri, bary) if start is None else _start_value_and_grad(start, bary)
     scores = _vertex_scores(tri, g)  # (M, 3): g . v_i
     s = scores.argmin(dim=-1)
     p = bary_to_points(tri, bary)
@@ -139,6 +142,36 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
             t_a = _interpolation_step(torch.stack(samples_t, -1), torch.stack(samples_f, -1), slope_a)
         t = t.index_copy(0, a, t_a)
     return (1.0 - t).unsqueeze(-1) * bary + t.unsqueeze(-1) * _one_hot(s, bary)
+
+
+def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_steps: int = 0, start=None,
+                      fallback=None) -> torch.Tensor:
+    """``steps`` :func:`line_search_step` calls in a row, each from the last one's answer (``start``:
+    the first one's, as there).
+
+    ``fallback``: optional (bary (M, 3), f (M,), grad f (M, 3)) of a point whose value and gradient
+    are known (the lowest vertex, say); each step after the first starts from it instead where it is
+    lower than the last answer, so a step that went uphill is not built on. Every step after the
+    first costs one value-and-gradient query (at the last answer) and ``line_steps`` values.
+    """
+    tri = _prepare(sdf, triangles)
+    bary = line_search_step(sdf, tri, init, vertex_values, line_steps=line_steps, start=start)
+    for _ in range(_non_negative_int(steps, "steps") - 1):
+        f, g = _value_and_grad(sdf, tri, bary)
+        if fallback is not None:
+            back_bary, back_f, back_g = fallback
+            back = back_f < f
+            bary = torch.where(back.unsqueeze(-1), back_bary.to(bary), bary)
+            f, g = torch.where(back, back_f.to(f), f), torch.where(back.unsqueeze(-1), back_g.to(g), g)
+        bary = line_search_step(sdf, tri, bary, vertex_values, line_steps=line_steps, start=(f, g))
+    return bary
+
+
+def _start_value_and_grad(start, bary: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    f0, g = (_as_float(x, name).to(bary) for x, name in zip(start, ("start value", "start gradient")))
+    if f0.shape != bary.shape[:1] or g.shape != bary.shape:
+        raise InputError(f"start must be (f (M,), grad (M, 3)) for {bary.shape[0]} triangles, got {tuple(f0.shape)} and {tuple(g.shape)}")
+    return f0, g
 
 
 def _parabola_minimiser(f0: torch.Tensor, slope: torch.Tensor, f1: torch.Tensor) -> torch.Tensor:
