@@ -321,6 +321,29 @@ def test_line_search_step_with_a_given_start_equals_the_one_that_queries_it(sphe
         solvers.line_search_step(sphere, tri, init, fv, start=(f0, g0[:, :2]))
 
 
+def test_line_search_steps_are_the_steps_taken_one_by_one(sphere):
+    """Against the plain loop: each step from the last answer (its value and gradient queried anew),
+    falling back on the given point where that is lower; rows that stop moving skip their queries only."""
+    tri = triangles_near(sphere.center, 128, seed=8, spread=0.05)
+    fv = sphere(tri.reshape(-1, 3)).reshape(-1, 3)
+    init = torch.full((128, 3), 1 / 3, dtype=torch.float64)
+    vertex = torch.nn.functional.one_hot(fv.argmin(-1), 3).double()
+    f_v, g_v = sphere.value_and_grad(torch.einsum("mv,mvc->mc", vertex, tri))
+    for fallback in (None, (vertex, f_v, g_v)):
+        naive = init
+        for k in range(3):
+            f, g = sphere.value_and_grad(torch.einsum("mv,mvc->mc", naive, tri))
+            if k and fallback is not None:
+                back = f_v < f
+                naive = torch.where(back[:, None], vertex, naive)
+                f, g = torch.where(back, f_v, f), torch.where(back[:, None], g_v, g)
+            naive = solvers.line_search_step(sphere, tri, naive, fv, line_steps=1, start=(f, g))
+        fast = solvers.line_search_steps(sphere, tri, init, fv, 3, line_steps=1, fallback=fallback)
+        torch.testing.assert_close(fast, naive, atol=1e-12, rtol=0)
+    one = solvers.line_search_steps(sphere, tri, init, fv, 1, line_steps=1)
+    assert solvers.optimality(sphere, tri, fast).mean() < 0.5 * solvers.optimality(sphere, tri, one).mean()
+
+
 def test_line_search_step_rejects_bad_input(sphere):
     tri = triangles_near(sphere.center, 4, seed=3)
     start = torch.full((4, 3), 1 / 3, dtype=torch.float64)

@@ -147,23 +147,43 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
 def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_steps: int = 0, start=None,
                       fallback=None) -> torch.Tensor:
     """``steps`` :func:`line_search_step` calls in a row, each from the last one's answer (``start``:
-    the first one's, as there).
+    (f, grad f) at ``init``, as there).
 
     ``fallback``: optional (bary (M, 3), f (M,), grad f (M, 3)) of a point whose value and gradient
     are known (the lowest vertex, say); each step after the first starts from it instead where it is
-    lower than the last answer, so a step that went uphill is not built on. Every step after the
-    first costs one value-and-gradient query (at the last answer) and ``line_steps`` values.
+    lower than the last answer, so a step that went uphill is not built on. A row whose step left it
+    where it was (a KKT point, and no lower fallback) is done: the next step would do the same. Every
+    later step costs one value-and-gradient query (at the last answer) and ``line_steps`` values, on the
+    rows still moving only.
     """
     tri = _prepare(sdf, triangles)
-    bary = line_search_step(sdf, tri, init, vertex_values, line_steps=line_steps, start=start)
-    for _ in range(_non_negative_int(steps, "steps") - 1):
-        f, g = _value_and_grad(sdf, tri, bary)
-        if fallback is not None:
-            back_bary, back_f, back_g = fallback
-            back = back_f < f
-            bary = torch.where(back.unsqueeze(-1), back_bary.to(bary), bary)
+    bary = _as_simplex(init, tri, "init").clone()
+    steps = _non_negative_int(steps, "steps")
+    if vertex_values is None:
+        vertex_values = _values(sdf, tri, torch.eye(3, dtype=tri.dtype, device=tri.device).expand(tri.shape[0], 3, 3))
+    fv = _as_float(vertex_values, "vertex_values").to(tri)
+    f, g = _value_and_grad(sdf, tri, bary) if start is None else _start_value_and_grad(start, bary)
+    rows = torch.arange(tri.shape[0], device=tri.device)  # the rows still moving, with f and g at their answers
+    for k in range(steps):
+        if k and fallback is not None:
+            back_bary, back_f, back_g = (x[rows] for x in fallback)
+            back = back_f.to(f) < f
+            bary[rows] = torch.where(back.unsqueeze(-1), back_bary.to(bary), bary[rows])
             f, g = torch.where(back, back_f.to(f), f), torch.where(back.unsqueeze(-1), back_g.to(g), g)
-        bary = line_search_step(sdf, tri, bary, vertex_values, line_steps=line_steps, start=(f, g))
+        before = bary[rows]
+        after = line_search_step(sdf, tri[rows], before, fv[rows], line_steps=line_steps, start=(f, g))
+        bary[rows] = after
+        if k + 1 == steps:
+            break
+        moved = (after != before).any(dim=-1)
+        keep = moved if fallback is None else moved | (fallback[1][rows].to(f) < f)
+        rows, f, g, moved = rows[keep], f[keep], g[keep], moved[keep]
+        if rows.numel() == 0:
+            break
+        if bool(moved.any()):  # the value and gradient at the new answers; a row that stayed keeps its own
+            m = moved.nonzero().squeeze(-1)
+            f_new, g_new = _value_and_grad(sdf, tri[rows[m]], bary[rows[m]])
+            f, g = f.index_copy(0, m, f_new), g.index_copy(0, m, g_new)
     return bary
 
 
