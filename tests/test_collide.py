@@ -6,6 +6,7 @@ edges), and a dense barycentric sampling for non-convex SDFs (a torus).
 """
 
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ import trimesh
 import zoo
 from zoo.collide import METHODS, candidate_triangles, clear_voxel_cache
 from zoo.errors import InputError
-from zoo.geometry import bary_to_points
+from zoo.geometry import bary_to_points, bounding_radius
 from zoo.voxel import VoxelSDF
 
 # -- meshes and references ------------------------------------------------------------------
@@ -158,11 +159,12 @@ def test_broad_phase_keeps_every_triangle_of_a_sampled_torus_reference():
     assert len(kept) < 0.7 * len(tri)
 
 
-def test_broad_phase_keeps_the_tight_case_of_the_centroid_cull():
+@pytest.mark.parametrize("m", [500, 2000])  # below and above the size where cells are cleared first
+def test_broad_phase_keeps_the_tight_case_of_the_centroid_cull(m):
     # A triangle whose nearest vertex is exactly at `margin` from a sphere and whose centroid
     # lies straight behind that vertex: f(centroid) == bounding_radius + margin exactly.
     g = torch.Generator().manual_seed(3)
-    m, r, margin = 500, 0.25, 1e-3
+    r, margin = 0.25, 1e-3
     u = torch.nn.functional.normalize(torch.randn(m, 3, generator=g), dim=-1)
     w = torch.nn.functional.normalize(torch.linalg.cross(u, torch.randn(m, 3, generator=g)), dim=-1)
     radius = (0.01 + 0.2 * torch.rand(m, generator=g)).unsqueeze(-1)
@@ -171,6 +173,24 @@ def test_broad_phase_keeps_the_tight_case_of_the_centroid_cull():
     assert len(candidate_triangles(zoo.Sphere(r), tri, margin)) == m
     # and just beyond the margin they are all culled: the cull is not merely keeping everything
     assert len(candidate_triangles(zoo.Sphere(r), tri + 0.01 * u.unsqueeze(1), margin)) == 0
+
+
+def test_cells_cleared_first_drop_only_triangles_the_centroid_test_keeps_in_vain():
+    """The cell pre-cull against the plain centroid test on one triangle at a time: it keeps a subset,
+    and every triangle it drops beyond that is farther than the margin (exact sphere distances)."""
+    collide_module = sys.modules["zoo.collide"]
+    sphere = zoo.Sphere(0.25, center=(0.03, -0.02, 0.01))
+    tri = random_triangles(sphere, 3000, seed=4).float()
+    exact, _ = sphere_reference(sphere.center.numpy(), sphere.radius, tri.double().numpy())
+    margin = 1e-3
+    with_cells, f_c = collide_module._centroid_cull(sphere, tri, margin)
+    plain = torch.as_tensor(sphere(tri.mean(dim=1))) <= bounding_radius(tri) + margin + 1e-6
+    assert bool((with_cells <= plain).all())
+    dropped = (plain & ~with_cells).numpy()
+    assert bool((exact[dropped] > margin).all())
+    torch.testing.assert_close(f_c[with_cells], torch.as_tensor(sphere(tri.mean(dim=1)[with_cells])))
+    cleared = torch.isinf(f_c)  # cells cleared by one query cost no centroid query
+    assert int(cleared.sum()) > 0.3 * len(tri) and not bool((cleared & plain & ~torch.as_tensor(dropped)).any())
 
 
 def test_broad_phase_drops_triangles_outside_the_bounds_box():

@@ -93,7 +93,7 @@ _INITIAL_CURVATURE_LOGIT = -4.0
 POLISH_LINE_STEPS = 2
 # Line-search steps per polished in-range answer (a subdivided triangle's lowest piece takes one). The
 # vertex test settles 80-99% of in-range triangles first, so the polish runs on the rest only.
-POLISH_ROUNDS = 3
+POLISH_ROUNDS = 2
 # A perimeter floor that keeps degenerate (zero-size) triangles finite.
 _TINY_LENGTH = 1e-12
 
