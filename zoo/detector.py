@@ -89,10 +89,12 @@ _DIRECTION_GAIN = 10.0
 _INITIAL_CURVATURE_LOGIT = -4.0
 # Value queries after the polish's gradient query (zoo.solvers.line_search_step). On the bench's 800
 # seen-mug triangles (4 mugs x 200, mugs@1.3.0) the polished mean optimality was 1.4e-3 with none,
-# 6.5e-4 with one, 3.6e-4 with two and 3.2e-4 with three.
+# 6.5e-4 with one, 3.6e-4 with two and 3.2e-4 with three (one step, before the vertex test).
 POLISH_LINE_STEPS = 2
 # Line-search steps per polished in-range answer (a subdivided triangle's lowest piece takes one). The
-# vertex test settles 80-99% of in-range triangles first, so the polish runs on the rest only.
+# vertex test settles 80-99% of in-range triangles first, so the polish runs on the rest only. Same
+# triangles: 3.3e-4 with one step, 2.4e-4 with two, 1.4e-4 with three; but three cost the scene bench's
+# contact check (a mug cut by a 20k-triangle mesh, 29% of its candidates polished) its 2x over FW.
 POLISH_ROUNDS = 2
 # A perimeter floor that keeps degenerate (zero-size) triangles finite.
 _TINY_LENGTH = 1e-12
