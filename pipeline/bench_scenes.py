@@ -5,8 +5,8 @@ bolt-nut}.toml``) and every method, one row: contacts, candidate and total trian
 of a whole ``zoo.collide`` call (median of ``repeats`` after one warm-up call) and the peak
 memory of a fresh process that loads the scene and collides it once. Methods:
 
-* ``amortized``: one pass of the model's detector, polished (``zoo.collide``'s default);
-* ``amortized-no-polish``: the same with ``polish=False`` (no gradient query in the narrow phase);
+* ``amortized``: ``zoo.collide``'s default: the vertex test, the model's detector where it fails, polished;
+* ``amortized-no-polish``: one pass of the detector with ``polish=False`` (no gradient query in the narrow phase);
   its own optimality and the FW iterations that match it are reported beside it
   (``no_polish_optimality_mean``, ``fw_matched_iters_no_polish``);
 * ``amortized+refine``: the same, then ``refine`` Frank-Wolfe steps warm-started from it;

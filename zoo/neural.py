@@ -469,9 +469,10 @@ class NeuralShape(SDFBase):
         Returns (bary (M, 3), distances (M,) at the returned points). The network's answer is
         compared with each triangle's vertices and the ``known`` point (bary (M, 3), distances
         (M,)), keeping the lowest; with ``cutoff``, triangles proven to stay above it are not
-        solved (their distance is then only proven to exceed it); ``polish`` takes one line-search
-        step from each answer (a subdivided triangle's: on its lowest piece) before that comparison.
-        See :func:`zoo.detector.solve_mesh`.
+        solved (their distance is then only proven to exceed it). ``polish``: an in-range triangle
+        whose lowest vertex passes the vertex test (its gradient there) is answered at that vertex;
+        the others' answers take line-search steps (a subdivided triangle's: one, on its lowest piece)
+        before that comparison. See :func:`zoo.detector.solve_mesh`.
         """
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
