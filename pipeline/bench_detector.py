@@ -178,22 +178,20 @@ def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
     """The ceiling of the curvature head's model: the exact minimum of the quadratic that matches the SDF at
     the three vertices and the three edge midpoints (six value queries per triangle, no network)."""
     from zoo.detector import quadratic_argmin
+    from zoo.solvers import vertex_values
 
     from .train_detector import midpoint_curvatures
 
-    with torch.no_grad():
-        values = torch.as_tensor(sdf(triangles.reshape(-1, 3))).reshape(-1, 3).to(triangles)
-    return quadratic_argmin(values, midpoint_curvatures(sdf, triangles).clamp_min(0))
+    return quadratic_argmin(vertex_values(sdf, triangles), midpoint_curvatures(sdf, triangles).clamp_min(0))
 
 
 def polished_best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
     """The baseline that isolates the network's part in ``amortized+ls``: the same polish (the vertex test,
     then ``POLISH_ROUNDS`` line-search steps) from the lowest vertex instead of the network's answer."""
     from zoo.detector import POLISH_LINE_STEPS, POLISH_ROUNDS
-    from zoo.solvers import line_search_steps
+    from zoo.solvers import line_search_steps, vertex_values
 
-    with torch.no_grad():
-        values = torch.as_tensor(sdf(triangles.reshape(-1, 3))).reshape(-1, 3).to(triangles)
+    values = vertex_values(sdf, triangles)
     lowest = values.argmin(dim=-1)
     vertex = torch.nn.functional.one_hot(lowest, 3).to(triangles)
     f, g = sdf.value_and_grad(bary_to_points(triangles, vertex))

@@ -386,7 +386,8 @@ def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
 
 def amortized_answers(sdf, tri: torch.Tensor, polish: bool = True) -> torch.Tensor:
     """What ``zoo.collide(method="amortized", polish=polish)`` answers on the triangles, without a margin to
-    stop at: ``detect_mesh`` (the network's answer or a lower vertex) where the SDF has it, else ``detect``."""
+    stop at: ``detect_mesh`` (the lowest of its answer, the vertices and the known point) where the SDF has it,
+    else ``detect``."""
     if callable(getattr(sdf, "detect_mesh", None)):
         from zoo.detector import unique_rows
 

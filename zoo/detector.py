@@ -40,7 +40,7 @@ Features are standardised by fixed statistics of the training set (buffers saved
 :func:`detect` then polishes (``polish=True``, the default). First the vertex test: the gradient at
 each in-range triangle's lowest vertex (one value-and-gradient query per distinct vertex, shared by the
 triangles around it); where no other vertex has a lower g . v_i, that vertex satisfies the KKT
-conditions and is the answer (80% of the bench's mug triangles, 86-99% of the scenes' in-range
+conditions and is the answer (81% of the bench's mug triangles, 86-99% of the scenes' in-range
 candidates), with no network and no further query. The rest take the network's answer and
 ``POLISH_ROUNDS`` Frank-Wolfe steps with a parabolic line search (:func:`zoo.solvers.line_search_step`:
 the exact gradient at the point, ``POLISH_LINE_STEPS`` values along the step), which get what
@@ -676,6 +676,12 @@ class _PointTable:
             self.has_f[need] = True
         return self.grad[rows]
 
+    def lowest_vertices(self, vertex_rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Each triangle's lowest corner, from its corner rows (R, 3): value (R,), which corner 0-2 (R,), its row (R,)."""
+        self.ensure_values(vertex_rows.reshape(-1))
+        value, corner = self.f[vertex_rows].min(dim=-1)
+        return value, corner, vertex_rows.gather(1, corner.unsqueeze(1)).squeeze(1)
+
     def grid_points(self, rows: torch.Tensor, ij: torch.Tensor, n: int) -> torch.Tensor:
         """Row indices (Q,) of the grid points (i, j) (Q, 2) at level ``n`` of triangles ``rows`` (Q,); evaluated if new."""
         i, j = ij[:, 0], ij[:, 1]
@@ -903,13 +909,11 @@ def _settled_at_vertex(tri_n, table: _PointTable, rows, vertex_rows, best_val, b
     once per distinct vertex, shared by the triangles around it, which is what makes the test cheaper
     than a gradient query per triangle. A row whose ``known`` point is lower than its vertices is not settled.
     """
-    table.ensure_values(vertex_rows.reshape(-1))
-    lowest = table.f[vertex_rows].argmin(dim=-1)  # (R,)
-    low_rows = vertex_rows.gather(1, lowest.unsqueeze(1)).squeeze(1)
+    f_low, lowest, low_rows = table.lowest_vertices(vertex_rows)
     scores = torch.einsum("rc,rvc->rv", table.gradients(low_rows), tri_n[rows])  # g . v_i
     settled = (scores.amin(dim=-1) >= scores.gather(1, lowest.unsqueeze(1)).squeeze(1)) & ~from_known[rows]
     won = rows[settled]
-    best_val[won] = table.f[low_rows[settled]]
+    best_val[won] = f_low[settled]
     best_bary[won] = F.one_hot(lowest[settled], 3).to(best_bary)
     return settled
 
@@ -929,12 +933,11 @@ def _polish(shape, triangles: torch.Tensor, bary: torch.Tensor, table: _PointTab
     """
     from .solvers import line_search_steps
 
-    table.ensure_values(vertex_rows.reshape(-1))
+    f_low, lowest, low_rows = table.lowest_vertices(vertex_rows)
     fv = table.f[vertex_rows]  # (P, 3)
     fallback = None
-    if rounds > 1 and bool((vertex_rows < table.grad.shape[0]).all()):  # vertex rows: the vertex test's gradients
-        f_low, lowest = fv.min(dim=-1)
-        g_low = table.grad[vertex_rows.gather(1, lowest.unsqueeze(1)).squeeze(1)]
+    if rounds > 1 and bool((low_rows < table.grad.shape[0]).all()):  # mesh vertices: the vertex test's gradients
+        g_low = table.grad[low_rows]
         known = ~torch.isnan(g_low[:, 0])
         f_low = torch.where(known, f_low, torch.full_like(f_low, math.inf))  # no gradient: never fall back
         fallback = (F.one_hot(lowest, 3).to(bary), f_low, torch.nan_to_num(g_low))

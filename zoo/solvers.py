@@ -5,8 +5,10 @@ Solvers, each batched over triangles (M, 3, 3) and returning barycentric coordin
 * :func:`frank_wolfe` - MuJoCo's mesh-SDF rule (the paper's baseline and the detector's label);
 * :func:`projected_gradient` - PhysX's triangle-SDF rule;
 * :func:`line_search_step` - one Frank-Wolfe step with a parabolic line search from a given start
+  (one gradient and a few value queries);
 * :func:`line_search_steps` - several in a row, optionally falling back on a known lower point
-  (what the amortized detector's answer is polished with: one gradient and a few value queries);
+  (what the amortized detector's answers are polished with);
+* :func:`vertex_values` - f at each triangle's vertices;
 * :func:`reference` - slow, global and obviously correct: a dense barycentric grid, then a
   pattern search; the yardstick the benchmarks measure the others against.
 
@@ -117,11 +119,7 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
     tri = _prepare(sdf, triangles)
     bary = _as_simplex(init, tri, "init")
     line_steps = _non_negative_int(line_steps, "line_steps")
-    if vertex_values is None:
-        vertex_values = _values(sdf, tri, torch.eye(3, dtype=tri.dtype, device=tri.device).expand(tri.shape[0], 3, 3))
-    fv = _as_float(vertex_values, "vertex_values").to(tri)
-    if fv.shape != bary.shape:
-        raise InputError(f"vertex_values must have shape {tuple(bary.shape)} (one value per vertex), got {tuple(fv.shape)}")
+    fv = _given_vertex_values(sdf, tri, vertex_values)
     rows = torch.arange(tri.shape[0], device=tri.device)
     f0, g = _value_and_grad(sdf, tri, bary) if start is None else _start_value_and_grad(start, bary)
     scores = _vertex_scores(tri, g)  # (M, 3): g . v_i
@@ -159,9 +157,7 @@ def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_step
     tri = _prepare(sdf, triangles)
     bary = _as_simplex(init, tri, "init").clone()
     steps = _non_negative_int(steps, "steps")
-    if vertex_values is None:
-        vertex_values = _values(sdf, tri, torch.eye(3, dtype=tri.dtype, device=tri.device).expand(tri.shape[0], 3, 3))
-    fv = _as_float(vertex_values, "vertex_values").to(tri)
+    fv = _given_vertex_values(sdf, tri, vertex_values)
     f, g = _value_and_grad(sdf, tri, bary) if start is None else _start_value_and_grad(start, bary)
     rows = torch.arange(tri.shape[0], device=tri.device)  # the rows still moving, with f and g at their answers
     for k in range(steps):
@@ -185,6 +181,21 @@ def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_step
             f_new, g_new = _value_and_grad(sdf, tri[rows[m]], bary[rows[m]])
             f, g = f.index_copy(0, m, f_new), g.index_copy(0, m, g_new)
     return bary
+
+
+def vertex_values(sdf, triangles) -> torch.Tensor:
+    """f at the three vertices of each triangle: (M, 3, 3) -> (M, 3), one value query per vertex, no gradients."""
+    tri = _prepare(sdf, triangles)
+    with torch.no_grad():
+        return _values(sdf, tri, torch.eye(3, dtype=tri.dtype, device=tri.device).expand(tri.shape[0], 3, 3))
+
+
+def _given_vertex_values(sdf, tri: torch.Tensor, values) -> torch.Tensor:
+    """``values`` (M, 3) checked against ``tri`` (M, 3, 3), or queried where None."""
+    fv = vertex_values(sdf, tri) if values is None else _as_float(values, "vertex_values").to(tri)
+    if fv.shape != tri.shape[:2]:
+        raise InputError(f"vertex_values must have shape {tuple(tri.shape[:2])} (one value per vertex), got {tuple(fv.shape)}")
+    return fv
 
 
 def _start_value_and_grad(start, bary: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
