@@ -797,7 +797,7 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
       (:func:`_settled_at_vertex`); each other in-range answer of the network takes ``POLISH_ROUNDS``
       line-search steps (:func:`_polish`) before it is compared with the vertices and the ``known``
       point; a subdivided triangle's lowest piece answer takes one inside its piece
-      (:func:`_solve_lowest_pieces`).
+      (:func:`_answer_pieces`).
     """
     if cutoff is not None and not vertex_check:
         raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
@@ -810,7 +810,6 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     tri_n = v_n[local]  # (M, 3, 3)
     m_rows = local.shape[0]
     scale = _scale(shape)
-    param = next(detector.parameters())
     levels = subdivision_levels(tri_n, detector.edge_range[1])
     start, halvings = search_levels(levels)
     single = levels == 1
@@ -863,33 +862,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             if found is not None:
                 pieces.append(found)
 
-    # subdivided rows: (rows, point indices, local bary, piece corners in parent bary, values) of their pieces
-    lowest_pieces = []
-    for rows, idx, grid, n in pieces:
-        for sel in torch.arange(rows.numel(), device=v_n.device).split(min(chunk, _NETWORK_CHUNK)):
-            r, i, g = rows[sel], idx[sel], grid[sel]
-            vsdf = table.f[i].to(param) if detector.vertex_sdf else None
-            with torch.no_grad():
-                local_bary, predicted = detector.predict(table.coords[i].to(param), table.z[i].to(param), vsdf)
-            local_bary = local_bary.to(dtype)
-            w = torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1).to(dtype) / n  # (P, 3, 3): piece vertex k in parent bary
-            if n > 1 and predicted is not None:
-                # ranked by the network's own estimate: only each row's lowest piece is evaluated (below)
-                lowest_pieces.append((r, i, local_bary, w, predicted.to(dtype)))
-                continue
-            if n == 1 and polish:
-                local_bary = _polish(shape, tri_n[r], local_bary, table, i, rounds=POLISH_ROUNDS)
-            bary = _to_parent(local_bary, w)
-            if n == 1 and not vertex_check:
-                best_bary[r] = bary  # the network's answer as is
-                continue
-            with torch.no_grad():
-                val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(dtype)
-            _improve(best_val, best_bary, from_known, r, val, bary)
-            if n > 1 and polish:
-                lowest_pieces.append((r, i, local_bary, w, val))
-    if lowest_pieces:
-        _solve_lowest_pieces(shape, tri_n, table, lowest_pieces, best_val, best_bary, from_known, polish)
+    if pieces:
+        _answer_pieces(detector, shape, tri_n, table, pieces, best_val, best_bary, from_known, vertex_check, polish, chunk)
 
     values = None
     if vertex_check:
@@ -918,30 +892,110 @@ def _settled_at_vertex(tri_n, table: _PointTable, rows, vertex_rows, best_val, b
     return settled
 
 
-def _polish(shape, triangles: torch.Tensor, bary: torch.Tensor, table: _PointTable, vertex_rows: torch.Tensor,
-            rounds: int = 1) -> torch.Tensor:
-    """The network's answers ``bary`` (P, 3) on ``triangles`` (P, 3, 3) (normalised frame) after ``rounds``
-    Frank-Wolfe steps with a parabolic line search (:func:`zoo.solvers.line_search_step`): the exact gradient
-    at the answer fixes what the network's model of the SDF got wrong. ``vertex_rows`` (P, 3): the
-    triangles' vertices in ``table``.
+def _answer_pieces(detector: AmortizedDetector, shape, tri_n, table: _PointTable, pieces: list, best_val, best_bary,
+                   from_known, vertex_check: bool, polish: bool, chunk: int) -> None:
+    """The network's answers on every piece that reached it, polished and compared with ``best_*``.
 
-    Each later step starts from the lower of the last answer and the lowest vertex, where the vertex
-    test took that vertex's gradient already: an answer the first step left above the vertex would
-    otherwise be improved on, and the vertex, though lower, keep its gap. A subdivided triangle is
-    polished on its lowest piece (:func:`_solve_lowest_pieces`), not as a whole: the parabola would
-    span a whole long edge.
+    ``pieces``: per group, (rows (P,), the pieces' point rows in ``table`` (P, 3), their grid
+    coordinates (P, 3, 2), level n); an in-range triangle is its own piece (n = 1). All groups
+    share one network batch and one polish, so that each query pays its fixed cost once.
+
+    * In-range triangles: the answer takes ``POLISH_ROUNDS`` line-search steps (:func:`_polish`); without
+      ``vertex_check`` it is the answer as is, else it is evaluated and kept where lower.
+    * A subdivided triangle: only its lowest piece's answer is polished (one step, inside that piece)
+      and evaluated. Lowest by the network's own estimate of the SDF there (``AmortizedDetector.predict``),
+      which spares a query per piece; a head without one has every piece's answer evaluated. The polish
+      moves a point by a fraction of its piece, and the piece is in the trained range, so the parabola
+      spans no more than the polish of an in-range triangle does (a whole subdivided triangle's edge
+      would be too long for it).
+    """
+    rows = torch.cat([p[0] for p in pieces])
+    idx = torch.cat([p[1] for p in pieces])
+    level = torch.cat([torch.full_like(p[0], p[3]) for p in pieces])
+    grid = torch.cat([p[2] for p in pieces])
+    n = level.to(tri_n.dtype).view(-1, 1, 1)
+    corners = torch.cat([n - grid.sum(-1, keepdim=True).to(n), grid.to(n)], dim=-1) / n  # (P, 3, 3): piece vertex k in parent bary
+    local, predicted = _network_answers(detector, table, idx, chunk)
+    local = local.to(tri_n.dtype)
+
+    single = (level == 1).nonzero().squeeze(-1)
+    multi = (level > 1).nonzero().squeeze(-1)
+    if multi.numel() and predicted is None:  # no model of the SDF: every piece's answer is evaluated
+        bary = _to_parent(local[multi], corners[multi])
+        values = _values_at(shape, tri_n[rows[multi]], bary)
+        _improve(best_val, best_bary, from_known, rows[multi], values, bary)
+        estimate = values
+    else:
+        estimate = None if predicted is None else predicted.to(tri_n.dtype)[multi]
+    if multi.numel() and (polish or predicted is not None):
+        multi = multi[_lowest_per_row(rows[multi], estimate)]
+    else:
+        multi = multi[:0]  # evaluated above, and nothing to polish
+    chosen = torch.cat([single, multi])
+    piece_bary = local[chosen]
+    if polish:
+        rounds = torch.cat([torch.full_like(single, POLISH_ROUNDS), torch.ones_like(multi)])
+        piece_bary = _polish(shape, table.coords[idx[chosen]], piece_bary, table, idx[chosen], rounds)
+    bary = _to_parent(piece_bary, corners[chosen])
+    r = rows[chosen]
+    if not vertex_check:  # in-range answers are the network's (polished) as they are
+        best_bary[r[: single.numel()]] = bary[: single.numel()]
+        r, bary = r[single.numel() :], bary[single.numel() :]
+    _improve(best_val, best_bary, from_known, r, _values_at(shape, tri_n[r], bary), bary)
+
+
+def _network_answers(detector: AmortizedDetector, table: _PointTable, idx: torch.Tensor, chunk: int):
+    """The network on the pieces whose corners are the ``table`` rows ``idx`` (P, 3): local bary (P, 3), and
+    the model's estimate of the SDF there (P,), or None for a head without one."""
+    param = next(detector.parameters())
+    answers, estimates = [], []
+    for i in idx.split(min(chunk, _NETWORK_CHUNK)):
+        vsdf = table.f[i].to(param) if detector.vertex_sdf else None
+        with torch.no_grad():
+            bary, value = detector.predict(table.coords[i].to(param), table.z[i].to(param), vsdf)
+        answers.append(bary)
+        estimates.append(value)
+    return torch.cat(answers), None if estimates[0] is None else torch.cat(estimates)
+
+
+def _lowest_per_row(rows: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """Index (R,) of the lowest of ``values`` (P,) for each distinct row in ``rows`` (P,) (the first such, by row)."""
+    order = torch.argsort(values, stable=True)
+    order = order[torch.argsort(rows[order], stable=True)]  # by row, lowest value first
+    first = torch.ones_like(order, dtype=torch.bool)
+    first[1:] = rows[order][1:] != rows[order][:-1]
+    return order[first]
+
+
+def _values_at(shape, triangles: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+    """Normalised-frame SDF (P,) at barycentrics (P, 3) of ``triangles`` (P, 3, 3)."""
+    if bary.shape[0] == 0:
+        return bary.new_zeros((0,))
+    with torch.no_grad():
+        return torch.as_tensor(shape.normalised(bary_to_points(triangles, bary))).reshape(-1).to(bary)
+
+
+def _polish(shape, triangles: torch.Tensor, bary: torch.Tensor, table: _PointTable, vertex_rows: torch.Tensor,
+            rounds) -> torch.Tensor:
+    """The network's answers ``bary`` (P, 3) on ``triangles`` (P, 3, 3) (normalised frame) after ``rounds``
+    (an int, or (P,) per row) Frank-Wolfe steps with a parabolic line search
+    (:func:`zoo.solvers.line_search_steps`): the exact gradient at the answer fixes what the network's
+    model of the SDF got wrong. ``vertex_rows`` (P, 3): the triangles' corners in ``table``.
+
+    Each later step starts from the lower of the last answer and the lowest corner where the vertex
+    test took that corner's gradient already: an answer the first step left above the vertex would
+    otherwise be improved on, and the vertex, though lower, keep its gap.
     """
     from .solvers import line_search_steps
 
     f_low, lowest, low_rows = table.lowest_vertices(vertex_rows)
-    fv = table.f[vertex_rows]  # (P, 3)
-    fallback = None
-    if rounds > 1 and bool((low_rows < table.grad.shape[0]).all()):  # mesh vertices: the vertex test's gradients
-        g_low = table.grad[low_rows]
-        known = ~torch.isnan(g_low[:, 0])
-        f_low = torch.where(known, f_low, torch.full_like(f_low, math.inf))  # no gradient: never fall back
-        fallback = (F.one_hot(lowest, 3).to(bary), f_low, torch.nan_to_num(g_low))
-    return line_search_steps(shape.normalised, triangles, bary, fv, rounds, line_steps=POLISH_LINE_STEPS, fallback=fallback)
+    n_vertices = table.grad.shape[0]  # gradients are kept at the mesh's vertices only, not at grid points
+    g_low = table.grad[low_rows.clamp_max(n_vertices - 1)]
+    known = (low_rows < n_vertices) & ~torch.isnan(g_low[:, 0])
+    f_low = torch.where(known, f_low, torch.full_like(f_low, math.inf))  # no gradient: never fall back
+    fallback = (F.one_hot(lowest, 3).to(bary), f_low, torch.nan_to_num(g_low))
+    return line_search_steps(shape.normalised, triangles, bary, table.f[vertex_rows], rounds,
+                             line_steps=POLISH_LINE_STEPS, fallback=fallback)
 
 
 def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
@@ -949,32 +1003,6 @@ def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     Rows are renormalised to sum to 1 in the working dtype, so the point does not depend on the frame."""
     bary = torch.einsum("pk,pkv->pv", local_bary, corners)
     return bary / bary.sum(dim=-1, keepdim=True)
-
-
-def _solve_lowest_pieces(shape, tri_n, table: _PointTable, found: list, best_val, best_bary, from_known, polish: bool) -> None:
-    """For each subdivided triangle, its lowest piece's answer, polished inside that piece when ``polish``.
-
-    ``found``: per network call, (rows (P,), the pieces' point rows (P, 3), local bary (P, 3), corners
-    in parent barycentrics (P, 3, 3), values (P,)): the SDF at the answers, or the network's own
-    estimate of it (``AmortizedDetector.predict``), which spares one SDF query per piece. One answer is
-    evaluated and polished per triangle rather than per piece: the polish moves a point by a fraction of
-    its piece, and the piece is in the trained range, so the parabola spans no more than the polish of an
-    in-range triangle does (a whole subdivided triangle's edge would be too long for it).
-    """
-    rows, idx, local, corners, values = (torch.cat(parts) for parts in zip(*found))
-    order = torch.argsort(values, stable=True)
-    order = order[torch.argsort(rows[order], stable=True)]  # by row, lowest value first
-    first = torch.ones_like(order, dtype=torch.bool)
-    first[1:] = rows[order][1:] != rows[order][:-1]
-    pick = order[first]
-    piece_bary = local[pick]
-    if polish:
-        piece_bary = _polish(shape, table.coords[idx[pick]], piece_bary, table, idx[pick])
-    bary = _to_parent(piece_bary, corners[pick])
-    r = rows[pick]
-    with torch.no_grad():
-        val = torch.as_tensor(shape.normalised(bary_to_points(tri_n[r], bary))).reshape(-1).to(best_val)
-    _improve(best_val, best_bary, from_known, r, val, bary)
 
 
 def _search(table: _PointTable, tri_n, rows, c: int, k: int, best_val, best_bary, from_known, cut_n, cull: bool):

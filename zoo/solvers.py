@@ -142,10 +142,11 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
     return (1.0 - t).unsqueeze(-1) * bary + t.unsqueeze(-1) * _one_hot(s, bary)
 
 
-def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_steps: int = 0, start=None,
+def line_search_steps(sdf, triangles, init, vertex_values, steps, line_steps: int = 0, start=None,
                       fallback=None) -> torch.Tensor:
     """``steps`` :func:`line_search_step` calls in a row, each from the last one's answer (``start``:
-    (f, grad f) at ``init``, as there).
+    (f, grad f) at ``init``, as there). ``steps``: an int, or an int tensor (M,) of steps per row
+    (rows of different budgets share each query).
 
     ``fallback``: optional (bary (M, 3), f (M,), grad f (M, 3)) of a point whose value and gradient
     are known (the lowest vertex, say); each step after the first starts from it instead where it is
@@ -156,10 +157,16 @@ def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_step
     """
     tri = _prepare(sdf, triangles)
     bary = _as_simplex(init, tri, "init").clone()
-    steps = _non_negative_int(steps, "steps")
+    budget = _steps_per_row(steps, tri.shape[0], tri.device)
     fv = _given_vertex_values(sdf, tri, vertex_values)
-    f, g = _value_and_grad(sdf, tri, bary) if start is None else _start_value_and_grad(start, bary)
-    rows = torch.arange(tri.shape[0], device=tri.device)  # the rows still moving, with f and g at their answers
+    rows = (budget > 0).nonzero().squeeze(-1)  # the rows still moving, with f and g at their answers
+    if rows.numel() == 0:
+        return bary
+    if start is None:
+        f, g = _value_and_grad(sdf, tri[rows], bary[rows])
+    else:
+        f, g = (x[rows] for x in _start_value_and_grad(start, bary))
+    steps = int(budget.max())
     for k in range(steps):
         if k and fallback is not None:
             back_bary, back_f, back_g = (x[rows] for x in fallback)
@@ -173,6 +180,7 @@ def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_step
             break
         moved = (after != before).any(dim=-1)
         keep = moved if fallback is None else moved | (fallback[1][rows].to(f) < f)
+        keep &= budget[rows] > k + 1
         rows, f, g, moved = rows[keep], f[keep], g[keep], moved[keep]
         if rows.numel() == 0:
             break
@@ -181,6 +189,17 @@ def line_search_steps(sdf, triangles, init, vertex_values, steps: int, line_step
             f_new, g_new = _value_and_grad(sdf, tri[rows[m]], bary[rows[m]])
             f, g = f.index_copy(0, m, f_new), g.index_copy(0, m, g_new)
     return bary
+
+
+def _steps_per_row(steps, m: int, device) -> torch.Tensor:
+    """``steps`` (an int, or an int tensor (M,)) as a tensor (M,) of non-negative step counts."""
+    if isinstance(steps, torch.Tensor):
+        if steps.shape != (m,) or steps.dtype.is_floating_point or steps.dtype == torch.bool:
+            raise InputError(f"steps must be an int or an integer tensor of shape ({m},), got {steps.dtype} {tuple(steps.shape)}")
+        if bool((steps < 0).any()):
+            raise InputError("steps must be >= 0 on every row")
+        return steps.to(device=device, dtype=torch.int64)
+    return torch.full((m,), _non_negative_int(steps, "steps"), dtype=torch.int64, device=device)
 
 
 def vertex_values(sdf, triangles) -> torch.Tensor:
