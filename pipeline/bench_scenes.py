@@ -23,7 +23,9 @@ memory of a fresh process that loads the scene and collides it once. Methods:
   lookups are local), and the memory reported for the grid is the full grid's
   (``nx * ny * nz * 4`` bytes), next to what was built. Frank-Wolfe runs the matched iterations.
 
-Besides, per scene: the amortized narrow phase against one batched value-and-gradient pass of the
+Besides, per scene: the speed-up of the amortized collide over ``fw-matched``, the two timed
+interleaved (``speedup``; the method rows are timed one after the other, so their ratio moves with
+the machine's load); the amortized narrow phase against one batched value-and-gradient pass of the
 SDF over the same candidates (the floor: that pass is needed for the contact features anyway),
 and the error-against-run-time sweep of Frank-Wolfe. The narrow phase is timed as ``zoo.collide``
 runs it (``Contacts.timings["narrow"]``: for a model's shape, ``detect_mesh`` on the candidates,
@@ -384,6 +386,17 @@ def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
     return out
 
 
+def speedup_over_fw(bs: BenchScene, fw_iters: int, repeats: int) -> dict:
+    """The amortized collide against Frank-Wolfe at the matched iterations, timed interleaved (medians of
+    ``repeats`` each): the speed-up stands even where the machine's load changes between the method rows,
+    which are timed one after the other."""
+    fns = {"amortized": lambda: collide_once(bs, bs.scene.sdf, {"method": "amortized"}),
+           "fw": lambda: collide_once(bs, bs.scene.sdf, {"method": "fw", "iters": fw_iters})}
+    seconds, _ = interleaved_seconds(fns, repeats)
+    return {"fw_iters": fw_iters, "amortized_s": seconds["amortized"], "fw_s": seconds["fw"],
+            "speedup": seconds["fw"] / seconds["amortized"], "repeats": repeats}
+
+
 def amortized_answers(sdf, tri: torch.Tensor, polish: bool = True) -> torch.Tensor:
     """What ``zoo.collide(method="amortized", polish=polish)`` answers on the triangles, without a margin to
     stop at: ``detect_mesh`` (the lowest of its answer, the vertices and the known point) where the SDF has it,
@@ -417,6 +430,7 @@ def measure_scene(bs: BenchScene, methods=METHODS, repeats: int = 5, refine: int
         "fw_matched_iters_no_polish": matched_iterations(sweep, no_polish_opt) if sweep and no_polish_opt is not None else None,
         "fw_sweep": sweep,
         "narrow_phase": narrow_phase_ratio(bs, tri, repeats) if len(tri) else None,
+        "speedup": speedup_over_fw(bs, k, repeats) if bs.has_detector and len(tri) and "fw-matched" in methods else None,
         "paper": PAPER_TABLE_II.get(s.name), "rows": [],
     }
     for name in methods:

@@ -113,6 +113,8 @@ def test_measure_scene_gives_every_row_of_table_ii():
     narrow = report["narrow_phase"]
     assert narrow["ratio"] > 0 and narrow["detect_only_ratio"] > 0
     assert narrow["detect_s"] == narrow["collide_phases_s"]["narrow"] and narrow["ratio"] == narrow["detect_s"] / narrow["value_and_grad_s"]
+    speedup = report["speedup"]  # timed interleaved, at the matched iterations
+    assert speedup["fw_iters"] == report["fw_matched_iters"] and speedup["speedup"] == speedup["fw_s"] / speedup["amortized_s"]
     for r in rows.values():  # collide's phases and the time per candidate
         assert set(r["phases_s"]) == {"broad", "narrow", "normals"}
         assert r["per_candidate_ms"] == pytest.approx(1e3 * r["time_s"] / r["n_candidates"])

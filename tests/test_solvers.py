@@ -344,6 +344,26 @@ def test_line_search_steps_are_the_steps_taken_one_by_one(sphere):
     assert solvers.optimality(sphere, tri, fast).mean() < 0.5 * solvers.optimality(sphere, tri, one).mean()
 
 
+def test_line_search_steps_per_row_are_each_budget_run_alone(sphere):
+    """Rows of different step budgets in one call answer as if each budget had its own call; 0 steps leaves a row as is."""
+    tri = triangles_near(sphere.center, 96, seed=9, spread=0.05)
+    fv = sphere(tri.reshape(-1, 3)).reshape(-1, 3)
+    init = torch.full((96, 3), 1 / 3, dtype=torch.float64)
+    vertex = torch.nn.functional.one_hot(fv.argmin(-1), 3).double()
+    f_v, g_v = sphere.value_and_grad(torch.einsum("mv,mvc->mc", vertex, tri))
+    budget = torch.arange(96) % 4  # 0, 1, 2, 3 steps
+    mixed = solvers.line_search_steps(sphere, tri, init, fv, budget, line_steps=1, fallback=(vertex, f_v, g_v))
+    for k in range(4):
+        rows = budget == k
+        alone = solvers.line_search_steps(sphere, tri[rows], init[rows], fv[rows], k, line_steps=1,
+                                          fallback=(vertex[rows], f_v[rows], g_v[rows]))
+        torch.testing.assert_close(mixed[rows], alone, atol=1e-12, rtol=0)
+    assert torch.equal(mixed[budget == 0], init[budget == 0])
+    for bad in (torch.ones(95, dtype=torch.int64), torch.ones(96), -torch.ones(96, dtype=torch.int64)):
+        with pytest.raises(InputError, match="steps"):
+            solvers.line_search_steps(sphere, tri, init, fv, bad)
+
+
 def test_line_search_step_rejects_bad_input(sphere):
     tri = triangles_near(sphere.center, 4, seed=3)
     start = torch.full((4, 3), 1 / 3, dtype=torch.float64)
