@@ -14,7 +14,9 @@ memory of a fresh process that loads the scene and collides it once. Methods:
   (equation (12), over the candidate triangles) is no worse than the amortized answer's (the
   paper's "FW at the same optimality"; the answer collide's amortized narrow phase gives, the
   network's or a lower vertex, without a margin to stop at; the network's alone is reported as
-  ``network_optimality_mean``); without a detector, Frank-Wolfe at its default 10;
+  ``network_optimality_mean``); the sweep goes past 100 iterations (``FW_SWEEP_EXTENSION``, up to 800)
+  only while FW has not matched it, and ``fw_matched`` says whether it did; without a detector,
+  Frank-Wolfe at its default 10;
 * ``voxel-fw-256``, ``voxel-fw-512``: Frank-Wolfe on a VoxelSDF of the same SDF with the sample
   spacing of a 256^3 / 512^3 grid over the SDF's bounds. Building such a grid from a NeuralSDF
   takes 16.7 M / 134 M network queries (minutes to an hour on two CPU cores), so only the part
@@ -82,9 +84,15 @@ from .scenes import Scene, load_scene, scene_from_dict
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 PAPER_SCENES = ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")
+# Rounds of the narrow phase's timing per ``repeats``: a round costs about one amortized collide and a
+# half (mug-rack 0.8 s, bolt-nut 1.7 s), and the ratio to the floor is the closest call of the bench.
+NARROW_ROUNDS_PER_REPEAT = 3
 METHODS = ("amortized", "amortized-no-polish", "amortized+refine", "fw-matched", "voxel-fw-256", "voxel-fw-512")
 NO_POLISH = "amortized-no-polish"
 FW_SWEEP = (1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 50, 100)
+# Swept only while FW has not matched the amortized optimality yet: mug-rack's needle-shaped rack triangles
+# (1.2-3.0 long, 0.002-0.009 wide, in the mug's normalised frame) need 400-800 iterations.
+FW_SWEEP_EXTENSION = (200, 400, 800)
 RESULT_NAME = "scenes.json"
 MAX_VOXEL_SAMPLES = 4_000_000  # about 100 s of NeuralSDF queries on one CPU core
 PAPER_TABLE_II = {  # candidate / total triangles and whole-collision seconds, amortized and FW
@@ -291,9 +299,10 @@ def median_seconds(fn, repeats: int) -> tuple[float, object]:
     return statistics.median(times), out
 
 
-def interleaved_seconds(fns: dict, repeats: int) -> tuple[dict, dict]:
-    """Median wall time of each ``fns[name]()``, the calls interleaved (one of each per round, after a
-    warm-up round), so that a machine's changing load hits them alike; and each one's results."""
+def interleaved_times(fns: dict, repeats: int) -> tuple[dict, dict]:
+    """Wall times (one list per name, one entry per round) of the calls ``fns[name]()``, interleaved (one of
+    each per round, after a warm-up round) so that a machine's changing load hits them alike; and each
+    one's results."""
     results = {name: [] for name in fns}
     times = {name: [] for name in fns}
     for name, fn in fns.items():
@@ -304,7 +313,20 @@ def interleaved_seconds(fns: dict, repeats: int) -> tuple[dict, dict]:
             out = fn()
             times[name].append(time.perf_counter() - t0)
             results[name].append(out)
+    return times, results
+
+
+def interleaved_seconds(fns: dict, repeats: int) -> tuple[dict, dict]:
+    """Median wall time of each ``fns[name]()``, timed by :func:`interleaved_times`; and each one's results."""
+    times, results = interleaved_times(fns, repeats)
     return {name: statistics.median(t) for name, t in times.items()}, results
+
+
+def paired_ratio(numerators: list, denominators: list) -> float:
+    """Median over rounds of numerator / denominator, each pair timed in the same round: steadier than a
+    ratio of medians where the machine's speed drifts between rounds (a value-and-gradient pass of one
+    scene took 25 to 49 ms over 30 back-to-back calls on this 2-core machine)."""
+    return statistics.median(n / d for n, d in zip(numerators, denominators, strict=True))
 
 
 def median_phases(contacts: list) -> dict:
@@ -313,10 +335,13 @@ def median_phases(contacts: list) -> dict:
     return {k: statistics.median(t[k] for t in phases) for k in phases[0]} if phases else {}
 
 
-def fw_sweep(sdf, tri: torch.Tensor, iters=FW_SWEEP) -> list[dict]:
-    """Mean and p90 optimality of Frank-Wolfe at each iteration count, on the candidate triangles."""
+def fw_sweep(sdf, tri: torch.Tensor, iters=FW_SWEEP, until: float | None = None) -> list[dict]:
+    """Mean and p90 optimality of Frank-Wolfe at each iteration count, on the candidate triangles; then, while
+    the mean is still above ``until`` (the amortized answer's), at the counts of ``FW_SWEEP_EXTENSION``."""
     rows = []
-    for k in iters:
+    for k in (*iters, *FW_SWEEP_EXTENSION):
+        if k not in iters and (until is None or rows[-1]["optimality_mean"] <= until):
+            break
         with torch.no_grad():
             bary = zoo.solvers.frank_wolfe(sdf, tri, iters=k)
         gap = zoo.solvers.optimality(sdf, tri, bary)
@@ -372,17 +397,22 @@ def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
         fns["detect_only"] = lambda: sdf.detect(tri)
         fns["collide"] = lambda: collide_once(bs, sdf, {"method": "amortized"})
         fns["collide_no_polish"] = lambda: collide_once(bs, sdf, {"method": "amortized", "polish": False})
-    seconds, results = interleaved_seconds(fns, repeats)
-    vg_s = seconds["value_and_grad"]
-    out = {"candidates": int(tri.shape[0]), "value_and_grad_s": vg_s}
+    rounds = NARROW_ROUNDS_PER_REPEAT * repeats
+    times, results = interleaved_times(fns, rounds)
+    seconds = {name: statistics.median(t) for name, t in times.items()}
+    vg = times["value_and_grad"]
+    out = {"candidates": int(tri.shape[0]), "value_and_grad_s": seconds["value_and_grad"], "rounds": rounds}
     if bs.has_detector:
-        phases = median_phases(results["collide"])
-        no_polish = median_phases(results["collide_no_polish"])["narrow"]
-        out.update(detect_s=phases["narrow"], ratio=phases["narrow"] / vg_s, detect_no_polish_s=no_polish,
-                   ratio_no_polish=no_polish / vg_s, detect_only_s=seconds["detect_only"],
-                   detect_only_ratio=seconds["detect_only"] / vg_s, collide_s=seconds["collide"], collide_phases_s=phases,
+        narrow = [c.timings["narrow"] for c in results["collide"]]
+        no_polish = [c.timings["narrow"] for c in results["collide_no_polish"]]
+        out.update(detect_s=statistics.median(narrow), ratio=paired_ratio(narrow, vg),
+                   detect_no_polish_s=statistics.median(no_polish), ratio_no_polish=paired_ratio(no_polish, vg),
+                   ratio_of_medians=statistics.median(narrow) / seconds["value_and_grad"],
+                   detect_only_s=seconds["detect_only"], detect_only_ratio=paired_ratio(times["detect_only"], vg),
+                   collide_s=seconds["collide"], collide_phases_s=median_phases(results["collide"]),
                    definition="detect_s: collide's amortized narrow phase (timings['narrow'], depths included); "
-                              "detect_only_s: sdf.detect(candidates); value_and_grad_s: one pass at the candidates' centroids")
+                              "detect_only_s: sdf.detect(candidates); value_and_grad_s: one pass at the candidates' "
+                              "centroids; ratios: median over rounds of the two timed in the same round")
     return out
 
 
@@ -392,9 +422,9 @@ def speedup_over_fw(bs: BenchScene, fw_iters: int, repeats: int) -> dict:
     which are timed one after the other."""
     fns = {"amortized": lambda: collide_once(bs, bs.scene.sdf, {"method": "amortized"}),
            "fw": lambda: collide_once(bs, bs.scene.sdf, {"method": "fw", "iters": fw_iters})}
-    seconds, _ = interleaved_seconds(fns, repeats)
-    return {"fw_iters": fw_iters, "amortized_s": seconds["amortized"], "fw_s": seconds["fw"],
-            "speedup": seconds["fw"] / seconds["amortized"], "repeats": repeats}
+    times, _ = interleaved_times(fns, repeats)
+    return {"fw_iters": fw_iters, "amortized_s": statistics.median(times["amortized"]), "fw_s": statistics.median(times["fw"]),
+            "speedup": paired_ratio(times["fw"], times["amortized"]), "repeats": repeats}
 
 
 def amortized_answers(sdf, tri: torch.Tensor, polish: bool = True) -> torch.Tensor:
@@ -414,18 +444,19 @@ def measure_scene(bs: BenchScene, methods=METHODS, repeats: int = 5, refine: int
     """One scene's rows (see the module doc)."""
     s = bs.scene
     idx, tri = candidate_set(bs)
-    sweep = fw_sweep(s.sdf, tri) if len(tri) else []
     amortized_opt = network_opt = no_polish_opt = None
     if bs.has_detector and len(tri):
         with torch.no_grad():
             network_opt = float(zoo.solvers.optimality(s.sdf, tri, s.sdf.detect(tri)).mean())
             amortized_opt = float(zoo.solvers.optimality(s.sdf, tri, amortized_answers(s.sdf, tri)).mean())
             no_polish_opt = float(zoo.solvers.optimality(s.sdf, tri, amortized_answers(s.sdf, tri, polish=False)).mean())
+    sweep = fw_sweep(s.sdf, tri, until=amortized_opt) if len(tri) else []
     k = matched_iterations(sweep, amortized_opt) if sweep else 10
     report = {
         "scene": s.name, "sdf": s.sdf_label, "sdf_kind": bs.sdf_kind, "sdf_note": bs.note, "mesh": s.mesh_label, "margin": s.margin,
         "n_triangles": int(bs.faces.shape[0]), "n_candidates": int(idx.numel()),
         "amortized_optimality_mean": amortized_opt, "network_optimality_mean": network_opt, "fw_matched_iters": k,
+        "fw_matched": bool(sweep) and amortized_opt is not None and sweep[-1]["optimality_mean"] <= amortized_opt,
         "no_polish_optimality_mean": no_polish_opt,
         "fw_matched_iters_no_polish": matched_iterations(sweep, no_polish_opt) if sweep and no_polish_opt is not None else None,
         "fw_sweep": sweep,
@@ -640,12 +671,13 @@ def contact_check(repeats: int = 5, model: str = CHECK_MODEL, shape: str = CHECK
             c = zoo.collide(sdf, mesh, margin=margin, method="amortized")
             out[name] = {"n_candidates": c.n_candidates, "n_contacts": len(c), **recall_precision(c, reference, counted)}
         fw_iters = DEFAULT_ITERS["fw"]
-        seconds, results = interleaved_seconds({
+        times, results = interleaved_times({
             "amortized": lambda: zoo.collide(sdf, mesh32, margin=margin, method="amortized"),
             "fw": lambda: zoo.collide(sdf, mesh32, margin=margin, method="fw"),
         }, repeats)
+    seconds = {name: statistics.median(t) for name, t in times.items()}
     out["timing"] = {"mesh_dtype": "float32", "repeats": repeats, "amortized_s": seconds["amortized"], "fw_s": seconds["fw"],
-                     "fw_iters": fw_iters, "fw_over_amortized": seconds["fw"] / seconds["amortized"],
+                     "fw_iters": fw_iters, "fw_over_amortized": paired_ratio(times["fw"], times["amortized"]),
                      "amortized_phases_s": median_phases(results["amortized"]), "fw_phases_s": median_phases(results["fw"]),
                      "fw": recall_precision(results["fw"][-1], reference, counted)}
     return out

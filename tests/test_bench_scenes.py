@@ -72,6 +72,20 @@ def test_matched_iterations_is_the_first_sweep_row_at_the_target():
     assert matched_iterations(sweep, None) == 10  # no detector: FW's default
 
 
+def test_the_fw_sweep_goes_on_only_until_it_matches_the_target():
+    sphere = zoo.Sphere(0.1)
+    gen = torch.Generator().manual_seed(3)
+    tri = torch.tensor([0.13, 0.0, 0.0], dtype=torch.float64) + 0.05 * torch.randn(6, 3, 3, generator=gen, dtype=torch.float64)
+    base = bench_scenes.fw_sweep(sphere, tri, iters=(1, 2))
+    assert [r["iters"] for r in base] == [1, 2]  # no target: the given counts only
+    assert [r["iters"] for r in bench_scenes.fw_sweep(sphere, tri, iters=(1, 2), until=1.0)] == [1, 2]  # matched already
+    full = bench_scenes.fw_sweep(sphere, tri, iters=(1, 2), until=-1.0)  # never matched: every extension
+    assert [r["iters"] for r in full] == [1, 2, *bench_scenes.FW_SWEEP_EXTENSION]
+    at_first = full[2]["optimality_mean"]  # matched by the first extension: it stops there
+    assert [r["iters"] for r in bench_scenes.fw_sweep(sphere, tri, iters=(1, 2), until=at_first)] == [1, 2, full[2]["iters"]]
+    assert full[0]["optimality_mean"] > full[-1]["optimality_mean"]  # the extension is what FW reaches with more steps
+
+
 def test_voxel_region_has_the_full_grids_spacing_and_holds_the_candidates():
     sphere = zoo.Sphere(0.1)
     tri = torch.tensor([[[0.09, 0.0, 0.0], [0.1, 0.01, 0.0], [0.1, 0.0, 0.01]]])
@@ -112,9 +126,11 @@ def test_measure_scene_gives_every_row_of_table_ii():
     assert rows["voxel-fw-512"]["grid_samples_built"] < 512**3 / 20  # only the part the candidates reach is built
     narrow = report["narrow_phase"]
     assert narrow["ratio"] > 0 and narrow["detect_only_ratio"] > 0
-    assert narrow["detect_s"] == narrow["collide_phases_s"]["narrow"] and narrow["ratio"] == narrow["detect_s"] / narrow["value_and_grad_s"]
+    assert narrow["detect_s"] == narrow["collide_phases_s"]["narrow"]
+    assert narrow["ratio_of_medians"] == narrow["detect_s"] / narrow["value_and_grad_s"]
+    assert narrow["rounds"] == bench_scenes.NARROW_ROUNDS_PER_REPEAT
     speedup = report["speedup"]  # timed interleaved, at the matched iterations
-    assert speedup["fw_iters"] == report["fw_matched_iters"] and speedup["speedup"] == speedup["fw_s"] / speedup["amortized_s"]
+    assert speedup["fw_iters"] == report["fw_matched_iters"] and speedup["speedup"] > 0 and speedup["repeats"] == 1
     for r in rows.values():  # collide's phases and the time per candidate
         assert set(r["phases_s"]) == {"broad", "narrow", "normals"}
         assert r["per_candidate_ms"] == pytest.approx(1e3 * r["time_s"] / r["n_candidates"])
@@ -136,6 +152,10 @@ def test_interleaved_timing_and_the_contact_checks_counts():
     calls = []
     seconds, results = bench_scenes.interleaved_seconds({"a": lambda: calls.append("a") or 1, "b": lambda: calls.append("b") or 2}, 3)
     assert calls == ["a", "b"] * 4 and results == {"a": [1, 1, 1], "b": [2, 2, 2]} and set(seconds) == {"a", "b"}
+    # ratios pair the calls of one round: the median of 2/1, 4/1, 9/3, not a ratio of medians (4/1)
+    assert bench_scenes.paired_ratio([2.0, 4.0, 9.0], [1.0, 1.0, 3.0]) == 3.0
+    with pytest.raises(ValueError):
+        bench_scenes.paired_ratio([1.0, 2.0], [1.0])
 
     class Found:
         triangles = torch.tensor([1, 2, 3, 9])  # 9 is not counted (its centroid lies within the margin)
