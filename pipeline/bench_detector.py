@@ -26,7 +26,6 @@ Results are written as ``bench_detector.json`` and a Pareto plot ``bench_detecto
 from __future__ import annotations
 
 import json
-import platform
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -38,6 +37,8 @@ from zoo.detector import detect
 from zoo.errors import InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points
+
+from .bench_solvers import machine_info, steady_allocator
 
 JSON_NAME = "bench_detector.json"
 # the detector as zoo's detect() runs it by default: the vertex test, then the forward pass and line-search steps
@@ -323,6 +324,7 @@ def run_detector_benchmark(detector, seen_shapes, unseen_shapes=(), out_dir="ben
         raise InputError("no shapes to benchmark; pass the model's fitted train shapes (model.shape(stem))")
     if config.threads:
         torch.set_num_threads(int(config.threads))
+    steady_allocator()
     t_start = time.perf_counter()
     seen_tri = bench_triangles(seen_shapes, config)
     unseen_tri = bench_triangles(list(unseen_shapes), config) if unseen_shapes else []
@@ -367,11 +369,6 @@ def build_voxels(shapes, config: BenchConfig) -> dict:
     box = (torch.full((3,), -0.5), torch.full((3,), 0.5))
     return {r: [VoxelSDF(s.normalised, resolution=r, bounds=box, padding=0.2) for s in shapes[: config.voxel_shapes]]
             for r in config.voxel_resolutions}
-
-
-def machine_info() -> dict:
-    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
-            "python": platform.python_version()}
 
 
 def pareto_plot(report: dict, path: Path) -> None:

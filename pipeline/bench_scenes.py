@@ -79,7 +79,7 @@ from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
 from zoo.voxel import VoxelSDF
 
-from .bench_solvers import machine_info
+from .bench_solvers import machine_info, steady_allocator
 from .scenes import Scene, load_scene, scene_from_dict
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
@@ -557,6 +557,7 @@ def run_scene_benchmark(scenes=None, out_dir: str | os.PathLike = "out/bench", m
     """Measure every scene and write ``<out_dir>/scenes.json``; returns its path."""
     if threads:
         torch.set_num_threads(int(threads))
+    steady_allocator()
     standin_dir = str(Path(out_dir) / "standins")
     names = list(scenes) if scenes else [*PAPER_SCENES, CONTACT_CHECK]
     check = CONTACT_CHECK in names

@@ -15,6 +15,7 @@ import trimesh
 
 import zoo
 from zoo.collide import METHODS, candidate_triangles, clear_voxel_cache
+from zoo.detector import cell_lower_bounds
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, bounding_radius
 from zoo.voxel import VoxelSDF
@@ -159,38 +160,48 @@ def test_broad_phase_keeps_every_triangle_of_a_sampled_torus_reference():
     assert len(kept) < 0.7 * len(tri)
 
 
-@pytest.mark.parametrize("m", [500, 2000])  # below and above the size where cells are cleared first
-def test_broad_phase_keeps_the_tight_case_of_the_centroid_cull(m):
-    # A triangle whose nearest vertex is exactly at `margin` from a sphere and whose centroid
-    # lies straight behind that vertex: f(centroid) == bounding_radius + margin exactly.
+@pytest.mark.parametrize("m", [100, 600])  # 300 and 1800 vertices: below and above the size where cells are bounded first
+def test_broad_phase_keeps_the_tight_case_of_the_vertex_cull(m):
+    # An equilateral triangle square to a sphere's radius, its vertices all at distance margin + R from the
+    # sphere (R its circumradius): the vertex bound min f_i - R is exactly the margin.
     g = torch.Generator().manual_seed(3)
     r, margin = 0.25, 1e-3
-    u = torch.nn.functional.normalize(torch.randn(m, 3, generator=g), dim=-1)
-    w = torch.nn.functional.normalize(torch.linalg.cross(u, torch.randn(m, 3, generator=g)), dim=-1)
-    radius = (0.01 + 0.2 * torch.rand(m, generator=g)).unsqueeze(-1)
-    c = (r + margin) * u + radius * u
-    tri = torch.stack([c - radius * u, c + radius * (0.5 * u + 0.75**0.5 * w), c + radius * (0.5 * u - 0.75**0.5 * w)], 1)
-    assert len(candidate_triangles(zoo.Sphere(r), tri, margin)) == m
+    u = torch.nn.functional.normalize(torch.randn(m, 3, generator=g, dtype=torch.float64), dim=-1)
+    w = torch.nn.functional.normalize(torch.linalg.cross(u, torch.randn(m, 3, generator=g, dtype=torch.float64)), dim=-1)
+    w2 = torch.linalg.cross(u, w)
+    radius = (0.01 + 0.2 * torch.rand(m, generator=g, dtype=torch.float64)).unsqueeze(-1)
+    offset = ((r + margin + radius) ** 2 - radius**2).sqrt()  # |centre| that puts the vertices at r + margin + R
+    corners = [radius * (torch.cos(a) * w + torch.sin(a) * w2) for a in torch.tensor([0.0, 2.0, 4.0], dtype=torch.float64) * math.pi / 3]
+    tri = torch.stack([offset * u + c for c in corners], 1)
+    sphere = zoo.Sphere(r)
+    torch.testing.assert_close(sphere(tri.reshape(-1, 3)).reshape(m, 3), (margin + radius).expand(m, 3), rtol=0, atol=1e-12)
+    # (the vertex cull itself: the bounding-box test before it may drop some, rightly: their centres lie beyond the margin)
+    vertex_cull = sys.modules["zoo.collide"]._vertex_cull
+    assert bool(vertex_cull(sphere, *_indexed(tri), margin)[0].all())
     # and just beyond the margin they are all culled: the cull is not merely keeping everything
-    assert len(candidate_triangles(zoo.Sphere(r), tri + 0.01 * u.unsqueeze(1), margin)) == 0
+    assert not bool(vertex_cull(sphere, *_indexed(tri + 0.01 * u.unsqueeze(1)), margin)[0].any())
 
 
-def test_cells_cleared_first_drop_only_triangles_the_centroid_test_keeps_in_vain():
-    """The cell pre-cull against the plain centroid test on one triangle at a time: it keeps a subset,
-    and every triangle it drops beyond that is farther than the margin (exact sphere distances)."""
+def test_cell_bounds_drop_only_faces_the_plain_vertex_cull_keeps_in_vain():
+    """The cell pre-pass against the plain vertex cull (every vertex queried): it keeps a subset, every
+    face it drops beyond that is farther than the margin (exact sphere distances), the values it returns
+    are the SDF's, and a face it clears costs no vertex query."""
     collide_module = sys.modules["zoo.collide"]
     sphere = zoo.Sphere(0.25, center=(0.03, -0.02, 0.01))
     tri = random_triangles(sphere, 3000, seed=4).float()
     exact, _ = sphere_reference(sphere.center.numpy(), sphere.radius, tri.double().numpy())
     margin = 1e-3
-    with_cells, f_c = collide_module._centroid_cull(sphere, tri, margin)
-    plain = torch.as_tensor(sphere(tri.mean(dim=1))) <= bounding_radius(tri) + margin + 1e-6
+    vertices, faces = _indexed(tri)
+    with_cells, f = collide_module._vertex_cull(sphere, vertices, faces, margin)
+    plain = cell_lower_bounds(tri, torch.as_tensor(sphere(tri.reshape(-1, 3))).reshape(-1, 3)) <= margin
     assert bool((with_cells <= plain).all())
     dropped = (plain & ~with_cells).numpy()
     assert bool((exact[dropped] > margin).all())
-    torch.testing.assert_close(f_c[with_cells], torch.as_tensor(sphere(tri.mean(dim=1)[with_cells])))
-    cleared = torch.isinf(f_c)  # cells cleared by one query cost no centroid query
-    assert int(cleared.sum()) > 0.3 * len(tri) and not bool((cleared & plain & ~torch.as_tensor(dropped)).any())
+    queried = ~torch.isnan(f)
+    torch.testing.assert_close(f[queried], torch.as_tensor(sphere(vertices[queried])))
+    assert bool(queried[faces[with_cells]].all())  # every kept face's vertices were evaluated
+    assert int(queried.sum()) < 0.7 * len(vertices)  # cells bounded by one query cost no vertex query
+    assert len(vertices) >= collide_module._CLUSTER_CULL_MIN
 
 
 def test_broad_phase_drops_triangles_outside_the_bounds_box():
@@ -380,8 +391,8 @@ def test_refine_never_makes_the_amortized_answer_worse():
 def test_amortized_on_a_model_shape_hands_the_candidates_over_as_a_mesh():
     # The bundled mugs model: collide gives detect_mesh the candidates as an indexed mesh and takes
     # its distances as the depths. Against the plain path (detect, then a value pass): the same
-    # candidates, a superset of the contacts (the answer is kept only where no vertex or centroid
-    # is lower), depths that are the SDF's at the reported points, never above the plain ones.
+    # candidates, a superset of the contacts (the answer is kept only where no vertex is lower),
+    # depths that are the SDF's at the reported points, never above the plain ones.
     shape = zoo.load("mugs").shape("hoi4d_mug_0001")
     s = shape.similarity
     g = np.random.default_rng(0)
@@ -404,7 +415,22 @@ def test_amortized_on_a_model_shape_hands_the_candidates_over_as_a_mesh():
     np.testing.assert_allclose(shape(c.points).numpy(), c.depths.numpy(), atol=1e-9 / s.scale)
     common = torch.isin(c.triangles, p.triangles)
     assert bool((c.depths[common] <= p.depths + 1e-9 / s.scale).all())
-    assert float((p.depths - c.depths[common]).max()) > 1e-4 / s.scale  # the vertex check matters here
+
+    # detect_mesh gets the distances the broad phase evaluated at the vertices, and needs no other at them
+    seen = {}
+    real = shape.detect_mesh
+
+    def spy(vertices, faces, **kwargs):
+        seen.update(faces=faces, values=kwargs["vertex_values"])
+        return real(vertices, faces, **kwargs)
+
+    shape.detect_mesh = spy
+    again = zoo.collide(shape, (vertices, faces), margin=margin, method="amortized")
+    del shape.detect_mesh
+    given = seen["values"][seen["faces"]]
+    assert bool(torch.isfinite(given).all())  # every candidate's vertices
+    torch.testing.assert_close(given, shape(torch.as_tensor(vertices)[seen["faces"]].reshape(-1, 3)).reshape(-1, 3))
+    torch.testing.assert_close(again.points, c.points)
 
 
 def test_polish_false_gives_the_unpolished_narrow_phase_and_only_for_amortized():
@@ -415,9 +441,8 @@ def test_polish_false_gives_the_unpolished_narrow_phase_and_only_for_amortized()
     margin = 0.003 / s.scale
     fast = zoo.collide(shape, (vertices, faces), margin=margin, method="amortized", polish=False)
     tri = torch.as_tensor(vertices)[torch.as_tensor(faces)][fast.triangles]
-    # the unpolished narrow phase is solve_mesh's answer without the line search (the centroids known, as collide has them)
-    known = (torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype), shape(tri.mean(dim=1)))
-    expected, _ = shape.detect_mesh(*_indexed(tri), known=known, polish=False)
+    # the unpolished narrow phase is solve_mesh's answer without the line search
+    expected, _ = shape.detect_mesh(*_indexed(tri), polish=False)
     np.testing.assert_allclose(fast.points.numpy(), bary_to_points(tri, expected).numpy(), atol=1e-9)
     polished = zoo.collide(shape, (vertices, faces), margin=margin, method="amortized")
     both = torch.isin(polished.triangles, fast.triangles)
@@ -439,7 +464,7 @@ def test_a_detect_mesh_of_the_wrong_shape_is_a_typed_error():
         def detect(self, triangles):
             return torch.full(triangles.shape[:2], 1 / 3, dtype=triangles.dtype)
 
-        def detect_mesh(self, vertices, faces, cutoff=None, known=None, polish=True):
+        def detect_mesh(self, vertices, faces, cutoff=None, known=None, polish=True, vertex_values=None):
             return torch.zeros(len(faces), 2), torch.zeros(len(faces))
 
     vertices, faces = plane_grid(8)

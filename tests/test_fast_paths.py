@@ -34,6 +34,7 @@ from zoo.detector import (
     unique_rows,
     vertex_features,
 )
+from zoo.errors import InputError
 from zoo.geometry import bary_to_points
 from zoo.meshes import Similarity
 from zoo.neural import (
@@ -388,6 +389,49 @@ def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
     f_vertex = shape.normalised(tri.reshape(-1, 3)).reshape(-1, 3).amin(-1)
     torch.testing.assert_close(f_checked, torch.minimum(f_plain, f_vertex), atol=1e-12, rtol=0)
     torch.testing.assert_close(values, f_checked, atol=1e-12, rtol=0)  # the distances at the answers come back
+
+
+def test_vertex_values_given_are_used_as_the_queried_ones_and_spare_their_queries():
+    """collide hands solve_mesh the distances its broad phase took at the vertices (NaN where none):
+    the same answers as when solve_mesh queries them, and exactly those queries fewer."""
+    sim = Similarity(4.0, rotation(5), np.array([0.02, -0.1, 0.3]))
+    shape, det = TorusWithCodes(sim), detector()
+    tri_n = torch.cat([mixed_triangles(seed=4), grid_mesh(14, 0.7, 0.04, 0.01)[0][grid_mesh(14)[1]]])
+    tri = torch.as_tensor(sim.to_source(tri_n.reshape(-1, 3).numpy())).reshape(-1, 3, 3)
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    faces = inv.reshape(-1, 3)
+    extra = torch.zeros(3, 3, dtype=v.dtype)  # vertices no face names: their values are not read
+    v = torch.cat([v, extra])
+    exact = shape.normalised(torch.as_tensor(sim.to_normalised(v.numpy()))) / sim.scale
+    counted = []
+
+    class Counting:  # the torus, counting the points of its value queries
+        def __init__(self, sdf):
+            self.sdf, self.bounds = sdf, sdf.bounds
+
+        def __call__(self, p):
+            counted.append(len(p))
+            return self.sdf(p)
+
+        def value_and_grad(self, p):
+            return self.sdf.value_and_grad(p)
+
+    shape.normalised = Counting(shape.normalised)
+    for polish in (False, True):
+        counted.clear()
+        bary, values = solve_mesh(det, shape, v, faces, polish=polish)
+        queried = sum(counted)
+        for share in (1.0, 0.5):
+            given = exact.clone()
+            given[torch.rand(len(v), generator=torch.Generator().manual_seed(1)) >= share] = float("nan")
+            given[-3:] = float("nan")
+            counted.clear()
+            bary_g, values_g = solve_mesh(det, shape, v, faces, polish=polish, vertex_values=given)
+            torch.testing.assert_close(bary_g, bary, atol=1e-12, rtol=0)
+            torch.testing.assert_close(values_g, values, atol=1e-12, rtol=0)
+            assert sum(counted) == queried - int(torch.isfinite(given).sum())
+    with pytest.raises(InputError, match="one distance per vertex"):
+        solve_mesh(det, shape, v, faces, vertex_values=exact[:-1])
 
 
 def test_cutoff_and_known_point_keep_every_contact_and_its_depth():

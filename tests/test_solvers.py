@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import platform
 
 import numpy as np
 import pytest
@@ -591,6 +592,12 @@ def test_solver_benchmark_writes_its_json(tmp_path):
     report = json.loads(path.read_text())
     assert {"machine", "config", "reference", "solvers"} <= set(report)
     assert {"torch", "threads", "cpu"} <= set(report["machine"])
+    # the bench keeps freed memory in the process (steady timings), once, and says so
+    from pipeline.bench_solvers import STEADY_ALLOCATOR, steady_allocator
+
+    assert report["machine"]["allocator"] == steady_allocator() != "unchanged"
+    if platform.libc_ver()[0] == "glibc":
+        assert report["machine"]["allocator"] == "glibc mallopt: " + ", ".join(f"{k} {v}" for k, v in STEADY_ALLOCATOR.items())
     fractions = report["reference"]["location_fraction"]
     assert sum(fractions.values()) == pytest.approx(1.0)
     rows = {(r["solver"], r["iters"]): r for r in report["solvers"]}

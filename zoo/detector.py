@@ -642,13 +642,19 @@ class _PointTable:
     (its triangle, its grid coordinates at the triangle's finest level).
     """
 
-    def __init__(self, shape, vertices_n: torch.Tensor, faces: torch.Tensor, values_for: torch.Tensor):
+    def __init__(self, shape, vertices_n: torch.Tensor, faces: torch.Tensor, values_for: torch.Tensor,
+                 given: torch.Tensor | None = None):
+        """``values_for``: vertex rows whose distances are needed now; ``given``: (U,) normalised-frame
+        distances at the vertices known already (NaN where not), which are not queried again."""
         self.shape = shape
         self.faces = faces
         self.share_edges = vertices_n.shape[0] < (1 << _EDGE_KEY_VERTEX_BITS)
         self.coords = vertices_n
         self.z, self.f = _features(shape, vertices_n), torch.full(vertices_n.shape[:1], float("nan"), dtype=vertices_n.dtype, device=vertices_n.device)
         self.has_f = torch.zeros(vertices_n.shape[0], dtype=torch.bool, device=vertices_n.device)
+        if given is not None:
+            self.has_f = ~torch.isnan(given)
+            self.f = torch.where(self.has_f, given, self.f)
         self.ensure_values(values_for)
         self.keys = torch.zeros(0, dtype=torch.int64, device=vertices_n.device)  # sorted
         self.slots = torch.zeros(0, dtype=torch.int64, device=vertices_n.device)
@@ -775,7 +781,8 @@ def _distances_from_features(shape, points: torch.Tensor, features: torch.Tensor
 
 
 def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: float | None = None, known=None,
-               vertex_check: bool = True, cull: bool = True, chunk: int = 65536, polish: bool = False):
+               vertex_check: bool = True, cull: bool = True, chunk: int = 65536, polish: bool = False,
+               vertex_values=None):
     """Amortized minima of ``shape``'s SDF on the triangles ``vertices[faces]``: -> bary (M, 3), values (M,) or None.
 
     ``vertices`` (V, 3) in the shape's source frame (only those ``faces`` (M, 3) name are used),
@@ -787,7 +794,9 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     * Longer triangles: the lowest of the answers on the surviving pieces and the grid points
       evaluated (and the ``known`` point), searched coarse to fine (:func:`search_levels`).
     * ``known``: (bary (M, 3), values (M,)) a point per triangle whose source-frame distance is
-      known already (collide passes the centroids its broad phase evaluated).
+      known already, taken where lower than the answer.
+    * ``vertex_values``: (V,) source-frame distances at ``vertices`` known already, NaN where not
+      (collide passes those its broad phase evaluated); they are not queried again.
     * ``cutoff`` (source frame, needs ``vertex_check``): triangles and cells whose lower bound
       (:func:`cell_lower_bounds`) exceeds it are not solved; such a row's value is only proven
       to be > cutoff (what collide needs of a triangle that is no contact).
@@ -816,7 +825,13 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     # distances are needed at the vertices of subdivided triangles (bounds, candidates), at every
     # vertex with the vertex check, and wherever the detector reads them
     needs_f = torch.ones_like(single) if (vertex_check or detector.vertex_sdf) else ~single
-    table = _PointTable(shape, v_n, local, local[needs_f].reshape(-1))
+    given = None
+    if vertex_values is not None:
+        given = torch.as_tensor(vertex_values, device=vertices.device).reshape(-1)
+        if given.shape[0] != vertices.shape[0]:
+            raise InputError(f"solve_mesh: vertex_values must hold one distance per vertex ({vertices.shape[0]}), got {given.shape[0]}")
+        given = given[used].to(v_n.dtype) * scale
+    table = _PointTable(shape, v_n, local, local[needs_f].reshape(-1), given)
 
     dtype = v_n.dtype
     best_val = torch.full((m_rows,), float("inf"), dtype=dtype, device=v_n.device)

@@ -463,7 +463,7 @@ class NeuralShape(SDFBase):
         return self.model.detect(self, triangles, polish=polish)
 
     def detect_mesh(self, vertices: torch.Tensor, faces: torch.Tensor, cutoff: float | None = None, known=None,
-                    polish: bool = True):
+                    polish: bool = True, vertex_values=None):
         """Contact narrow phase of ``zoo.collide``: minima on the triangles ``vertices[faces]`` (source frame).
 
         Returns (bary (M, 3), distances (M,) at the returned points). The network's answer is
@@ -472,7 +472,8 @@ class NeuralShape(SDFBase):
         solved (their distance is then only proven to exceed it). ``polish``: an in-range triangle
         whose lowest vertex passes the vertex test (its gradient there) is answered at that vertex;
         the others' answers take line-search steps (a subdivided triangle's: one, on its lowest piece)
-        before that comparison. See :func:`zoo.detector.solve_mesh`.
+        before that comparison. ``vertex_values`` (V,): distances at ``vertices`` the caller has already
+        (NaN where it has none), which are then not queried again. See :func:`zoo.detector.solve_mesh`.
         """
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
@@ -481,7 +482,7 @@ class NeuralShape(SDFBase):
         from .detector import solve_mesh
 
         return solve_mesh(self.model.detector, self, vertices, faces, cutoff=cutoff, known=known, vertex_check=True,
-                          polish=polish)
+                          polish=polish, vertex_values=vertex_values)
 
     def to(self, device) -> "NeuralShape":
         """A copy whose tensors live on ``device`` (inputs on other devices are handled too)."""
