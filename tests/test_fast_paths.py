@@ -29,13 +29,15 @@ from zoo.detector import (
     detect,
     search_levels,
     solve_mesh,
+    strip_barycentrics,
+    strip_levels,
     subdivision_barycentrics,
     subdivision_levels,
     unique_rows,
     vertex_features,
 )
 from zoo.errors import InputError
-from zoo.geometry import bary_to_points
+from zoo.geometry import bary_to_points, edge_lengths
 from zoo.meshes import Similarity
 from zoo.neural import (
     NeuralSDF,
@@ -293,6 +295,39 @@ def naive_subdivided(det, shape, tri, n):
     return parent[torch.arange(tri.shape[0]), best]
 
 
+def flat_pieces(tri: torch.Tensor, n: int, max_edge: float) -> torch.Tensor:
+    """The pieces (P, 3, 3), in parent barycentrics, that solve_mesh searches flat on triangle ``tri`` (3, 3) of level n:
+    strips for a needle (strip_levels), else the n^2 regular pieces."""
+    strips, apex = strip_levels(tri[None], max_edge)
+    if int(strips[0]):
+        return strip_barycentrics(int(strips[0]), int(apex[0]), tri.dtype)
+    return subdivision_barycentrics(n, tri.dtype)
+
+
+def test_strips_tile_a_needle_with_pieces_in_range_and_fewer_than_the_regular_ones():
+    g = torch.Generator().manual_seed(7)
+    a = torch.randn(300, 3, generator=g, dtype=torch.float64)
+    along = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=-1)
+    across = torch.nn.functional.normalize(torch.linalg.cross(along, torch.randn(300, 3, generator=g, dtype=torch.float64)), dim=-1)
+    length = (0.09 + 0.5 * torch.rand(300, 1, generator=g, dtype=torch.float64))
+    width = 0.04 * torch.rand(300, 1, generator=g, dtype=torch.float64)
+    tri = torch.stack([a, a + length * along, a + length * along + width * across], 1)[:, torch.randperm(3, generator=g)]
+    max_edge = 0.08
+    strips, apex = strip_levels(tri, max_edge)
+    regular = subdivision_levels(tri, max_edge)
+    used = strips > 0
+    assert int(used.sum()) > 100  # those short and thin enough (the rest need more than 7 strips, or are regular)
+    assert bool((2 * strips[used] - 1 < regular[used] ** 2).all())
+    for i in used.nonzero().squeeze(-1).tolist():
+        corners = strip_barycentrics(int(strips[i]), int(apex[i]), tri.dtype)
+        pieces = torch.einsum("pjk,kc->pjc", corners, tri[i])
+        assert float(edge_lengths(pieces).max()) <= max_edge + 1e-12  # in range
+        parent = torch.linalg.cross(tri[i, 1] - tri[i, 0], tri[i, 2] - tri[i, 0], dim=-1)
+        cross = torch.linalg.cross(pieces[:, 1] - pieces[:, 0], pieces[:, 2] - pieces[:, 0], dim=-1)
+        assert bool(((cross @ parent) > 0).all())  # oriented as the parent, so no overlap...
+        torch.testing.assert_close(cross.norm(dim=-1).sum(), parent.norm(), rtol=1e-12, atol=0)  # ...and no gap
+
+
 def test_coarse_to_fine_search_gives_the_exhaustive_answer_and_evaluates_less():
     shape, det = TorusWithCodes(), detector()
     tri = mixed_triangles()
@@ -316,9 +351,10 @@ def test_search_is_never_worse_than_the_previous_subdivision():
     levels = subdivision_levels(tri, det.edge_range[1])
     ours = detect(det, shape, tri, polish=False)
     f_ours = shape.normalised(bary_to_points(tri, ours))
+    needles = strip_levels(tri, det.edge_range[1])[0] > 0
     for n in torch.unique(levels).tolist():
-        rows = levels == n
-        if n == 1 or n > 7:  # in range: the network's answer (tested above); beyond 7: pieces of level c * 2^k >= n
+        rows = (levels == n) & ~needles  # needles are cut into strips, not into the pieces the previous subdivision had
+        if n == 1 or n > 7 or not bool(rows.any()):  # in range: the network's answer (tested above); beyond 7: level c * 2^k >= n
             continue
         f_old = shape.normalised(bary_to_points(tri[rows], naive_subdivided(det, shape, tri[rows], n)))
         # 1e-7: the network runs in float32, and its answers for the same piece differ by rounding
@@ -336,7 +372,7 @@ def test_a_subdivided_triangle_polishes_its_lowest_piece_inside_that_piece():
     ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=True)
     sdf = shape.normalised
     for i, n in enumerate(levels[rows].tolist()):
-        corners = subdivision_barycentrics(n, tri.dtype)  # (P, 3, 3) pieces in parent barycentrics
+        corners = flat_pieces(tri[i], n, det.edge_range[1])  # (P, 3, 3) pieces in parent barycentrics
         pieces = torch.einsum("pjk,kc->pjc", corners, tri[i])
         with torch.no_grad():
             local = det(pieces.float(), shape.features(pieces.reshape(-1, 3)).reshape(-1, 3, 32)).double()
@@ -367,7 +403,7 @@ def test_a_quadratic_head_evaluates_only_the_piece_its_own_model_puts_lowest():
     ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=True)
     sdf = shape.normalised
     for i, n in enumerate(levels[rows].tolist()):
-        corners = subdivision_barycentrics(n, tri.dtype)
+        corners = flat_pieces(tri[i], n, det.edge_range[1])
         pieces = torch.einsum("pjk,kc->pjc", corners, tri[i])
         piece_f = sdf(pieces.reshape(-1, 3)).reshape(-1, 3)
         with torch.no_grad():

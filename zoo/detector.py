@@ -607,6 +607,48 @@ def _subdivision_grid(n: int, device=None) -> torch.Tensor:
     return torch.tensor(up + down, dtype=torch.int64, device=device)
 
 
+def strip_levels(triangles: torch.Tensor, max_edge: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where a needle is better cut into strips than into the n^2 pieces of :func:`subdivision_levels`.
+
+    A triangle (M, 3, 3) with apex A opposite its shortest edge BC is cut by the points P_k, Q_k at
+    k/n along AB and AC into 2n - 1 pieces (:func:`strip_barycentrics`): sides of at most
+    max(|AB|, |AC|) / n, rungs of at most |BC|, diagonals of at most |BC| + max(|AB|, |AC|) / n, so
+    n = ceil(max(|AB|, |AC|) / (max_edge - |BC|)) keeps every edge in range. Returns (n (M,) int64,
+    0 where the regular pieces are as few or the strips would need more than ``_MAX_FLAT_LEVEL``;
+    apex 0-2 (M,)). The scenes' long triangles are such needles (a nut's 0.16 x 0.009, a gear's
+    0.16 x 0.001 in their normalised frames): 3 or 5 pieces instead of 4 or 9.
+    """
+    e = edge_lengths(triangles)  # (M, 3): edge k from vertex k to k + 1, opposite vertex k + 2
+    short, edge = e.min(dim=-1)
+    apex = (edge + 2) % 3
+    room = max_edge - short
+    longest = e.amax(dim=-1)
+    n = torch.ceil(longest / room.clamp_min(torch.finfo(e.dtype).tiny)).clamp(1, 1 << 20).to(torch.int64)
+    regular = subdivision_levels(triangles, max_edge)
+    use = (room > 0) & (regular > 1) & (2 * n - 1 < regular.square()) & (n <= _MAX_FLAT_LEVEL)
+    return torch.where(use, n, torch.zeros_like(n)), apex
+
+
+def strip_barycentrics(n: int, apex: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Vertices of the 2n - 1 strip pieces of a triangle with apex vertex ``apex``, as barycentrics of the parent:
+    (2n - 1, 3, 3); see :func:`strip_levels`."""
+    grid = _strip_grid(n, apex).to(torch.float64)
+    a, b = grid[..., 0] / n, grid[..., 1] / n
+    return torch.stack([1 - a - b, a, b], dim=-1).to(dtype=dtype, device=device)
+
+
+def _strip_grid(n: int, apex: int, device=None) -> torch.Tensor:
+    """Integer grid coordinates (2n - 1, 3, 2) at level n of the strip pieces: (A, P_1, Q_1), then for each k
+    (P_k, P_k+1, Q_k+1) and (P_k, Q_k+1, Q_k), with P_k and Q_k at k/n from the apex A to its next and previous vertex."""
+    towards_next = {0: lambda k: (k, 0), 1: lambda k: (n - k, k), 2: lambda k: (0, n - k)}[apex]
+    towards_prev = {0: lambda k: (0, k), 1: lambda k: (n - k, 0), 2: lambda k: (k, n - k)}[apex]
+    p, q = towards_next, towards_prev
+    pieces = [[p(0), p(1), q(1)]]
+    for k in range(1, n):
+        pieces += [[p(k), p(k + 1), q(k + 1)], [p(k), q(k + 1), q(k)]]
+    return torch.tensor(pieces, dtype=torch.int64, device=device)
+
+
 def cell_lower_bounds(cells: torch.Tensor, values: torch.Tensor, lipschitz: float = LIPSCHITZ) -> torch.Tensor:
     """A lower bound (C,) of an L-Lipschitz SDF over each triangle (C, 3, 3) from its vertex values (C, 3).
 
@@ -822,6 +864,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     levels = subdivision_levels(tri_n, detector.edge_range[1])
     start, halvings = search_levels(levels)
     single = levels == 1
+    strips, apex = strip_levels(tri_n, detector.edge_range[1])
+    striped = ~single & (strips > 0)
     # distances are needed at the vertices of subdivided triangles (bounds, candidates), at every
     # vertex with the vertex check, and wherever the detector reads them
     needs_f = torch.ones_like(single) if (vertex_check or detector.vertex_sdf) else ~single
@@ -867,13 +911,21 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             single_rows, idx, corners = single_rows[~settled], idx[~settled], corners[~settled]
         if single_rows.numel():
             pieces.append((single_rows, idx, corners, 1))
+    regular = ~single & ~striped
     schedule = start * 16 + halvings  # k < 16
-    for code in torch.unique(schedule[~single]).tolist():
+    for code in torch.unique(schedule[regular]).tolist():
         c, k = divmod(int(code), 16)
-        rows = ((schedule == code) & ~single).nonzero().squeeze(-1)
-        per_chunk = max(1, _CELL_BUDGET // (c * c * 4**k))
-        for part in rows.split(per_chunk):
-            found = _search(table, tri_n, part, c, k, best_val, best_bary, from_known, cut_n, cull)
+        rows = ((schedule == code) & regular).nonzero().squeeze(-1)
+        base = _subdivision_grid(c, v_n.device) * (1 << k)  # (c^2, 3, 2) at the finest level's coordinates
+        for part in rows.split(max(1, _CELL_BUDGET // (c * c * 4**k))):
+            found = _search(table, tri_n, part, base, c << k, k, best_val, best_bary, from_known, cut_n, cull)
+            if found is not None:
+                pieces.append(found)
+    for n in torch.unique(strips[striped]).tolist():
+        rows = (striped & (strips == n)).nonzero().squeeze(-1)
+        by_apex = torch.stack([_strip_grid(n, a, v_n.device) for a in range(3)])  # (3, 2n - 1, 3, 2)
+        for part in rows.split(max(1, _CELL_BUDGET // (2 * n - 1))):
+            found = _search(table, tri_n, part, by_apex[apex[part]], n, 0, best_val, best_bary, from_known, cut_n, cull)
             if found is not None:
                 pieces.append(found)
 
@@ -1020,16 +1072,16 @@ def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     return bary / bary.sum(dim=-1, keepdim=True)
 
 
-def _search(table: _PointTable, tri_n, rows, c: int, k: int, best_val, best_bary, from_known, cut_n, cull: bool):
-    """Coarse-to-fine search over the pieces of level c * 2^k of triangles ``rows``.
+def _search(table: _PointTable, tri_n, rows, base: torch.Tensor, n: int, k: int, best_val, best_bary, from_known, cut_n,
+            cull: bool):
+    """Coarse-to-fine search of triangles ``rows`` (R,): the cells ``base`` (C, 3, 2), or (R, C, 3, 2) per row (grid
+    coordinates at level ``n``), each halved ``k`` times (:func:`_split_cells`) into the pieces.
 
     Updates ``best_*`` with the grid points evaluated and returns the surviving pieces
     (rows, point indices, grid coordinates, level), or None when none survives.
     """
-    n = c * (1 << k)
-    base = _subdivision_grid(c, tri_n.device) * (1 << k)  # (c^2, 3, 2) at the finest level's coordinates
-    cell_rows = rows.repeat_interleave(base.shape[0])
-    grid = base.repeat(rows.numel(), 1, 1)
+    cell_rows = rows.repeat_interleave(base.shape[-3])
+    grid = base.reshape(-1, 3, 2) if base.dim() == 4 else base.repeat(rows.numel(), 1, 1)
     for step in range(k + 1):
         idx = table.grid_points(cell_rows.repeat_interleave(3), grid.reshape(-1, 2), n).reshape(-1, 3)
         values = table.f[idx]  # (C, 3)

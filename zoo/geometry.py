@@ -79,7 +79,7 @@ def edges(triangles: torch.Tensor) -> torch.Tensor:
 
 
 def edge_lengths(triangles: torch.Tensor) -> torch.Tensor:
-    """Lengths of the three edges: (M, 3, 3) -> (M, 3)."""
+    """Lengths of the three edges (edge k from vertex k to k + 1, as :func:`edges`): (M, 3, 3) -> (M, 3)."""
     return edges(triangles).norm(dim=-1)
 
 
