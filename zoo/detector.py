@@ -692,23 +692,38 @@ class _PointTable:
         self.faces = faces
         self.share_edges = vertices_n.shape[0] < (1 << _EDGE_KEY_VERTEX_BITS)
         self.coords = vertices_n
-        self.z, self.f = _features(shape, vertices_n), torch.full(vertices_n.shape[:1], float("nan"), dtype=vertices_n.dtype, device=vertices_n.device)
+        self.f = torch.full(vertices_n.shape[:1], float("nan"), dtype=vertices_n.dtype, device=vertices_n.device)
         self.has_f = torch.zeros(vertices_n.shape[0], dtype=torch.bool, device=vertices_n.device)
         if given is not None:
             self.has_f = ~torch.isnan(given)
             self.f = torch.where(self.has_f, given, self.f)
-        self.ensure_values(values_for)
+        # code-cloud features, taken where the decoder or the network needs them (rows with given values may need neither)
+        self.z: torch.Tensor | None = None
+        self.has_z = torch.zeros(vertices_n.shape[0], dtype=torch.bool, device=vertices_n.device)
         self.keys = torch.zeros(0, dtype=torch.int64, device=vertices_n.device)  # sorted
         self.slots = torch.zeros(0, dtype=torch.int64, device=vertices_n.device)
         # gradients at vertex rows only (the vertex test of solve_mesh), NaN until asked for
         self.grad = torch.full_like(vertices_n, float("nan"))
+        self.ensure_values(values_for)
+
+    def features(self, rows: torch.Tensor) -> torch.Tensor:
+        """Code-cloud features (..., C) at the int rows ``rows`` (...), computed where new."""
+        need = torch.unique(rows.reshape(-1))
+        need = need[~self.has_z[need]]
+        if need.numel():
+            z = _features(self.shape, self.coords[need])
+            if self.z is None:
+                self.z = z.new_zeros((self.coords.shape[0], z.shape[-1]))
+            self.z[need] = z
+            self.has_z[need] = True
+        return self.z[rows]
 
     def ensure_values(self, rows: torch.Tensor) -> None:
         """Distances at the vertex rows ``rows`` (the decoder on the features already computed)."""
         rows = torch.unique(rows)
         rows = rows[~self.has_f[rows]]
         if rows.numel():
-            self.f[rows] = _distances_from_features(self.shape, self.coords[rows], self.z[rows])
+            self.f[rows] = _distances_from_features(self.shape, self.coords[rows], self.features(rows))
             self.has_f[rows] = True
 
     def gradients(self, rows: torch.Tensor) -> torch.Tensor:
@@ -793,7 +808,10 @@ class _PointTable:
             start = self.coords.shape[0]
             new_slots = torch.arange(start, start + missing.numel(), device=key.device)
             self.coords = torch.cat([self.coords, p])
+            if self.z is None:  # no row had features yet: zeros (has_z False) for the rows before
+                self.z = z.new_zeros((start, z.shape[-1]))
             self.z = torch.cat([self.z, z])
+            self.has_z = torch.cat([self.has_z, torch.ones(missing.numel(), dtype=torch.bool, device=key.device)])
             self.f = torch.cat([self.f, f])
             self.has_f = torch.cat([self.has_f, torch.ones(missing.numel(), dtype=torch.bool, device=key.device)])
             slot[missing] = new_slots
@@ -1019,7 +1037,7 @@ def _network_answers(detector: AmortizedDetector, table: _PointTable, idx: torch
     for i in idx.split(min(chunk, _NETWORK_CHUNK)):
         vsdf = table.f[i].to(param) if detector.vertex_sdf else None
         with torch.no_grad():
-            bary, value = detector.predict(table.coords[i].to(param), table.z[i].to(param), vsdf)
+            bary, value = detector.predict(table.coords[i].to(param), table.features(i).to(param), vsdf)
         answers.append(bary)
         estimates.append(value)
     return torch.cat(answers), None if estimates[0] is None else torch.cat(estimates)
