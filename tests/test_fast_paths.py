@@ -427,15 +427,20 @@ def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
     torch.testing.assert_close(values, f_checked, atol=1e-12, rtol=0)  # the distances at the answers come back
 
 
+def mixed_mesh_in_source(sim: Similarity, seed: int):
+    """Mixed triangles and a grid over the torus, in the source frame of ``sim``: triangles (M, 3, 3), vertices (V, 3), faces (M, 3)."""
+    tri_n = torch.cat([mixed_triangles(seed=seed), grid_mesh(14, 0.7, 0.04, 0.01)[0][grid_mesh(14)[1]]])
+    tri = torch.as_tensor(sim.to_source(tri_n.reshape(-1, 3).numpy())).reshape(-1, 3, 3)
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    return tri, v, inv.reshape(-1, 3)
+
+
 def test_vertex_values_given_are_used_as_the_queried_ones_and_spare_their_queries():
     """collide hands solve_mesh the distances its broad phase took at the vertices (NaN where none):
     the same answers as when solve_mesh queries them, and exactly those queries fewer."""
     sim = Similarity(4.0, rotation(5), np.array([0.02, -0.1, 0.3]))
     shape, det = TorusWithCodes(sim), detector()
-    tri_n = torch.cat([mixed_triangles(seed=4), grid_mesh(14, 0.7, 0.04, 0.01)[0][grid_mesh(14)[1]]])
-    tri = torch.as_tensor(sim.to_source(tri_n.reshape(-1, 3).numpy())).reshape(-1, 3, 3)
-    v, inv = unique_rows(tri.reshape(-1, 3))
-    faces = inv.reshape(-1, 3)
+    tri, v, faces = mixed_mesh_in_source(sim, seed=4)
     extra = torch.zeros(3, 3, dtype=v.dtype)  # vertices no face names: their values are not read
     v = torch.cat([v, extra])
     exact = shape.normalised(torch.as_tensor(sim.to_normalised(v.numpy()))) / sim.scale
@@ -473,10 +478,7 @@ def test_vertex_values_given_are_used_as_the_queried_ones_and_spare_their_querie
 def test_cutoff_and_known_point_keep_every_contact_and_its_depth():
     sim = Similarity(4.0, rotation(7), np.array([0.02, -0.1, 0.3]))
     shape, det = TorusWithCodes(sim), detector()
-    tri_n = torch.cat([mixed_triangles(seed=3), grid_mesh(14, 0.7, 0.04, 0.01)[0][grid_mesh(14)[1]]])
-    tri = torch.as_tensor(sim.to_source(tri_n.reshape(-1, 3).numpy())).reshape(-1, 3, 3)
-    v, inv = unique_rows(tri.reshape(-1, 3))
-    faces = inv.reshape(-1, 3)
+    tri, v, faces = mixed_mesh_in_source(sim, seed=3)
     source = lambda p: shape.normalised(torch.as_tensor(sim.to_normalised(p.numpy()))) / sim.scale  # noqa: E731
     cutoff = 0.004 / sim.scale
     full_bary, full = solve_mesh(det, shape, v, faces)

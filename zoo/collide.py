@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from .detector import cell_lower_bounds, unique_rows
 from .errors import InputError
 from .geometry import (
     as_pose,
@@ -52,7 +53,6 @@ from .geometry import (
     transform_points,
     transform_vectors,
 )
-from .detector import cell_lower_bounds, unique_rows
 from .sdf import check_sdf
 
 METHODS = ("fw", "pgd", "voxel-fw", "amortized")

@@ -509,8 +509,9 @@ def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, ve
 
     In-range triangles get the network's answer (one pass; features computed once per distinct
     vertex). Triangles with an edge longer than the trained range are subdivided into the range
-    (:func:`search_levels`) and the answer is the lowest of the pieces' answers and the grid
-    points evaluated on the way (coarse-to-fine search, see :func:`solve_mesh`).
+    (:func:`search_levels`; a needle into strips, :func:`strip_levels`) and the answer is the lowest
+    of the pieces' answers and the grid points evaluated on the way (coarse-to-fine search, see
+    :func:`solve_mesh`).
     ``vertex_check=True`` also compares each in-range answer with the triangle's best vertex
     and keeps the lower (one more SDF query per triangle and one per distinct vertex).
     ``polish=True`` (the default): an in-range triangle whose lowest vertex passes the vertex test
