@@ -345,6 +345,24 @@ def test_coarse_to_fine_search_gives_the_exhaustive_answer_and_evaluates_less():
     assert culled_points < 0.5 * shape.feature_points
 
 
+def test_search_in_parts_gives_the_answers_of_one_search(monkeypatch):
+    """A mesh whose cells exceed the budget is searched in parts of whole rows, each row's cells
+    together: rows are independent, so the answers are those of one search over all."""
+    shape, det = TorusWithCodes(), detector()
+    tri = mixed_triangles()
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    whole = solve_mesh(det, shape, v, inv.reshape(-1, 3))
+    parts = []
+    real = zoo.detector._search_part
+    monkeypatch.setattr(zoo.detector, "_search_part", lambda *a, **k: parts.append(a[1]) or real(*a, **k))
+    monkeypatch.setattr(zoo.detector, "_CELL_BUDGET", 64)
+    split = solve_mesh(det, shape, v, inv.reshape(-1, 3))
+    assert len(parts) > 3
+    assert sum(len(set(p.tolist())) for p in parts) == len(set(torch.cat(parts).tolist()))  # each row in one part only
+    for a, b in zip(whole, split):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
+
+
 def test_search_is_never_worse_than_the_previous_subdivision():
     shape, det = TorusWithCodes(), detector(seed=1)
     tri = mixed_triangles(seed=2, m=60)

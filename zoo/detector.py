@@ -746,9 +746,11 @@ class _PointTable:
         value, corner = self.f[vertex_rows].min(dim=-1)
         return value, corner, vertex_rows.gather(1, corner.unsqueeze(1)).squeeze(1)
 
-    def grid_points(self, rows: torch.Tensor, ij: torch.Tensor, n: int) -> torch.Tensor:
-        """Row indices (Q,) of the grid points (i, j) (Q, 2) at level ``n`` of triangles ``rows`` (Q,); evaluated if new."""
+    def grid_points(self, rows: torch.Tensor, ij: torch.Tensor, n) -> torch.Tensor:
+        """Row indices (Q,) of the grid points (i, j) (Q, 2) of triangles ``rows`` (Q,) at their levels ``n``
+        (an int, or (Q,): a triangle keeps one level); evaluated if new."""
         i, j = ij[:, 0], ij[:, 1]
+        n = torch.as_tensor(n, dtype=i.dtype, device=i.device).expand_as(i)
         out = torch.empty_like(i)
         face = self.faces[rows]  # (Q, 3)
         corner = torch.full_like(i, -1)
@@ -760,7 +762,7 @@ class _PointTable:
         rest = (~is_corner).nonzero().squeeze(-1)
         if rest.numel() == 0:
             return out
-        i, j, face, r = i[rest], j[rest], face[rest], rows[rest]
+        i, j, n, face, r = i[rest], j[rest], n[rest], face[rest], rows[rest]
         # a point on an edge: (a, b, t) with t the fraction from a to b, t = num / n
         on01, on02, on12 = j == 0, i == 0, (i + j == n)
         edge = on01 | on02 | on12
@@ -769,7 +771,7 @@ class _PointTable:
         num = torch.where(on01, i, j)
         swap = a > b
         a, b, num = torch.where(swap, b, a), torch.where(swap, a, b), torch.where(swap, n - num, num)
-        den = torch.full_like(num, n)
+        den = n
         g = torch.gcd(num, den).clamp_min(1)
         num, den = num // g, den // g
         if self.share_edges:
@@ -783,7 +785,7 @@ class _PointTable:
         t = (num.to(self.coords.dtype) / den.to(self.coords.dtype)).unsqueeze(-1)
         va, vb = self.coords[a], self.coords[b]
         along = va + t * (vb - va)
-        w = torch.stack([n - i - j, i, j], dim=-1).to(self.coords.dtype) / n  # (Q, 3)
+        w = torch.stack([n - i - j, i, j], dim=-1).to(self.coords.dtype) / n.unsqueeze(-1).to(self.coords.dtype)  # (Q, 3)
         inside = torch.einsum("qv,qvc->qc", w, self.coords[face])
         xyz = torch.where(edge.unsqueeze(-1), along, inside)
         out[rest] = self._lookup_or_add(key, xyz)
@@ -916,8 +918,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
         from_known = better
     cut_n = None if cutoff is None else float(cutoff) * scale
 
-    # the pieces that reach the network: (row, piece's point indices (P, 3), piece's grid (P, 3, 2), level)
-    pieces: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]] = []
+    # the pieces that reach the network: (rows (P,), their point indices (P, 3), grid coordinates (P, 3, 2), levels (P,))
+    pieces: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]] = []
     single_rows = single.nonzero().squeeze(-1)
     if single_rows.numel():
         corners = _subdivision_grid(1, v_n.device).expand(single_rows.numel(), -1, -1)
@@ -929,24 +931,20 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             settled = _settled_at_vertex(tri_n, table, single_rows, idx, best_val, best_bary, from_known)
             single_rows, idx, corners = single_rows[~settled], idx[~settled], corners[~settled]
         if single_rows.numel():
-            pieces.append((single_rows, idx, corners, 1))
+            pieces.append((single_rows, idx, corners, torch.ones_like(single_rows)))
     regular = ~single & ~striped
+    groups = []  # (rows (R,), their cells (C, 3, 2) or (R, C, 3, 2) in grid coordinates at level n, n, halvings k)
     schedule = start * 16 + halvings  # k < 16
     for code in torch.unique(schedule[regular]).tolist():
         c, k = divmod(int(code), 16)
         rows = ((schedule == code) & regular).nonzero().squeeze(-1)
-        base = _subdivision_grid(c, v_n.device) * (1 << k)  # (c^2, 3, 2) at the finest level's coordinates
-        for part in rows.split(max(1, _CELL_BUDGET // (c * c * 4**k))):
-            found = _search(table, tri_n, part, base, c << k, k, best_val, best_bary, from_known, cut_n, cull)
-            if found is not None:
-                pieces.append(found)
+        groups.append((rows, _subdivision_grid(c, v_n.device) * (1 << k), c << k, k))  # at the finest level's coordinates
     for n in torch.unique(strips[striped]).tolist():
         rows = (striped & (strips == n)).nonzero().squeeze(-1)
         by_apex = torch.stack([_strip_grid(n, a, v_n.device) for a in range(3)])  # (3, 2n - 1, 3, 2)
-        for part in rows.split(max(1, _CELL_BUDGET // (2 * n - 1))):
-            found = _search(table, tri_n, part, by_apex[apex[part]], n, 0, best_val, best_bary, from_known, cut_n, cull)
-            if found is not None:
-                pieces.append(found)
+        groups.append((rows, by_apex[apex[rows]], n, 0))
+    if groups:
+        pieces += _search(table, groups, best_val, best_bary, from_known, cut_n, cull)
 
     if pieces:
         _answer_pieces(detector, shape, tri_n, table, pieces, best_val, best_bary, from_known, vertex_check, polish, chunk)
@@ -983,7 +981,7 @@ def _answer_pieces(detector: AmortizedDetector, shape, tri_n, table: _PointTable
     """The network's answers on every piece that reached it, polished and compared with ``best_*``.
 
     ``pieces``: per group, (rows (P,), the pieces' point rows in ``table`` (P, 3), their grid
-    coordinates (P, 3, 2), level n); an in-range triangle is its own piece (n = 1). All groups
+    coordinates (P, 3, 2), levels n (P,)); an in-range triangle is its own piece (n = 1). All groups
     share one network batch and one polish, so that each query pays its fixed cost once.
 
     * In-range triangles: the answer takes ``POLISH_ROUNDS`` line-search steps (:func:`_polish`); without
@@ -997,7 +995,7 @@ def _answer_pieces(detector: AmortizedDetector, shape, tri_n, table: _PointTable
     """
     rows = torch.cat([p[0] for p in pieces])
     idx = torch.cat([p[1] for p in pieces])
-    level = torch.cat([torch.full_like(p[0], p[3]) for p in pieces])
+    level = torch.cat([p[3] for p in pieces])
     grid = torch.cat([p[2] for p in pieces])
     n = level.to(tri_n.dtype).view(-1, 1, 1)
     corners = torch.cat([n - grid.sum(-1, keepdim=True).to(n), grid.to(n)], dim=-1) / n  # (P, 3, 3): piece vertex k in parent bary
@@ -1091,32 +1089,61 @@ def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     return bary / bary.sum(dim=-1, keepdim=True)
 
 
-def _search(table: _PointTable, tri_n, rows, base: torch.Tensor, n: int, k: int, best_val, best_bary, from_known, cut_n,
-            cull: bool):
-    """Coarse-to-fine search of triangles ``rows`` (R,): the cells ``base`` (C, 3, 2), or (R, C, 3, 2) per row (grid
-    coordinates at level ``n``), each halved ``k`` times (:func:`_split_cells`) into the pieces.
+def _search(table: _PointTable, groups: list, best_val, best_bary, from_known, cut_n, cull: bool) -> list:
+    """Coarse-to-fine search of the subdivided triangles: -> their surviving pieces, a list of (rows (P,),
+    point indices (P, 3), grid coordinates (P, 3, 2), levels (P,)).
 
-    Updates ``best_*`` with the grid points evaluated and returns the surviving pieces
-    (rows, point indices, grid coordinates, level), or None when none survives.
+    ``groups``: (rows (R,), cells (C, 3, 2) shared or (R, C, 3, 2) per row, in grid coordinates at
+    level n, n, k): each cell is evaluated at its corners, culled, and halved (:func:`_split_cells`)
+    until it has been halved k times; what survives the last cull is a piece. All groups share each
+    step's queries, a step costing its bookkeeping once, not once per group. ``best_*`` take every grid
+    point evaluated. Rows are searched in parts of about ``_CELL_BUDGET`` cells at their finest.
     """
-    cell_rows = rows.repeat_interleave(base.shape[-3])
-    grid = base.reshape(-1, 3, 2) if base.dim() == 4 else base.repeat(rows.numel(), 1, 1)
-    for step in range(k + 1):
-        idx = table.grid_points(cell_rows.repeat_interleave(3), grid.reshape(-1, 2), n).reshape(-1, 3)
+    rows, grid, level, left = [], [], [], []
+    for r, base, n, k in groups:
+        cells_per_row = base.shape[-3]
+        rows.append(r.repeat_interleave(cells_per_row))
+        grid.append(base.reshape(-1, 3, 2) if base.dim() == 4 else base.repeat(r.numel(), 1, 1))
+        level.append(torch.full_like(rows[-1], n))
+        left.append(torch.full_like(rows[-1], k))
+    rows, grid, level, left = (torch.cat(t) for t in (rows, grid, level, left))
+    finest = 4 ** left  # cells a cell becomes at its finest; a row's cells are adjacent, so parts keep rows whole
+    part = (finest.cumsum(0) - finest) // _CELL_BUDGET
+    first = torch.ones_like(part, dtype=torch.bool)
+    first[1:] = rows[1:] != rows[:-1]
+    part = part[first][torch.cumsum(first, 0) - 1]  # each cell in its row's first cell's part
+    pieces = []
+    for p in torch.unique(part).tolist():
+        take = part == p
+        pieces += _search_part(table, rows[take], grid[take], level[take], left[take], best_val, best_bary,
+                               from_known, cut_n, cull)
+    return pieces
+
+
+def _search_part(table: _PointTable, cell_rows, grid, level, left, best_val, best_bary, from_known, cut_n,
+                 cull: bool) -> list:
+    """:func:`_search` on cells (C,) of rows ``cell_rows``, grid coordinates ``grid`` (C, 3, 2) at ``level`` (C,),
+    ``left`` (C,) halvings to go."""
+    pieces = []
+    while cell_rows.numel():
+        idx = table.grid_points(cell_rows.repeat_interleave(3), grid.reshape(-1, 2), level.repeat_interleave(3)).reshape(-1, 3)
         values = table.f[idx]  # (C, 3)
-        corner_bary = torch.cat([n - grid.sum(-1, keepdim=True), grid], dim=-1).to(values.dtype) / n  # (C, 3, 3)
+        n = level.view(-1, 1, 1).to(values.dtype)
+        corner_bary = torch.cat([n - grid.sum(-1, keepdim=True).to(n), grid.to(n)], dim=-1) / n  # (C, 3, 3)
         _improve(best_val, best_bary, from_known, cell_rows.repeat_interleave(3), values.reshape(-1), corner_bary.reshape(-1, 3))
         if cull:
             lower = cell_lower_bounds(table.coords[idx], values)
             keep = lower <= best_val[cell_rows]
             if cut_n is not None:
                 keep &= lower <= cut_n
-            cell_rows, grid, idx = cell_rows[keep], grid[keep], idx[keep]
-        if cell_rows.numel() == 0:
-            return None
-        if step < k:
-            cell_rows, grid = cell_rows.repeat_interleave(4), _split_cells(grid)
-    return cell_rows, idx, grid, n
+            cell_rows, grid, idx, level, left = cell_rows[keep], grid[keep], idx[keep], level[keep], left[keep]
+        done = left == 0
+        if bool(done.any()):
+            pieces.append((cell_rows[done], idx[done], grid[done], level[done]))
+        go = ~done
+        cell_rows, level, left = (t[go].repeat_interleave(4) for t in (cell_rows, level, left - 1))
+        grid = _split_cells(grid[go])
+    return pieces
 
 
 def _split_cells(grid: torch.Tensor) -> torch.Tensor:
