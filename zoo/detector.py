@@ -40,7 +40,7 @@ Features are standardised by fixed statistics of the training set (buffers saved
 :func:`detect` then polishes (``polish=True``, the default). First the vertex test: the gradient at
 each in-range triangle's lowest vertex (one value-and-gradient query per distinct vertex, shared by the
 triangles around it); where no other vertex has a lower g . v_i, that vertex satisfies the KKT
-conditions and is the answer (81% of the bench's mug triangles, 86-99% of the scenes' in-range
+conditions and is the answer (81% of the bench's mug triangles, 68-99% of the scenes' in-range
 candidates), with no network and no further query. The rest take the network's answer and
 ``POLISH_ROUNDS`` Frank-Wolfe steps with a parabolic line search (:func:`zoo.solvers.line_search_step`:
 the exact gradient at the point, ``POLISH_LINE_STEPS`` values along the step), which get what
@@ -477,16 +477,17 @@ def sparsemax(scores: torch.Tensor) -> torch.Tensor:
 #
 # * every distinct vertex is evaluated once (features, and distances where they are needed):
 #   a mesh shares each vertex among about six triangles;
-# * triangles longer than the trained range are solved on the pieces of a regular subdivision,
-#   searched coarse to fine: the SDF is evaluated at the grid points of a cell (shared between
-#   cells, between levels and, along the mesh's edges, between neighbouring triangles), and a
-#   cell whose Lipschitz lower bound exceeds the best value found so far is dropped with
-#   everything inside it; only the pieces that survive to the finest level run the network and
-#   an SDF query at its answer;
+# * triangles longer than the trained range are solved on the pieces of a regular subdivision
+#   (a needle's strips), searched coarse to fine, all triangles' cells one step at a time: the SDF
+#   is evaluated at the grid points of a cell (shared between cells, between levels and, along the
+#   mesh's edges, between neighbouring triangles), and a cell whose Lipschitz lower bound exceeds
+#   the best value found so far is dropped with everything inside it; the pieces that survive to
+#   the finest level run the network, and a head that models the SDF has only its lowest piece's
+#   answer evaluated;
 # * with ``vertex_check`` (what collide uses) the network's answer on an in-range triangle is
-#   compared with the best vertex (and any known point, e.g. the centroid the broad phase
-#   evaluated), keeping the lower; with a ``cutoff`` (collide's margin) a triangle or cell
-#   proven to stay above it is not solved at all.
+#   compared with the best vertex (and any known point), keeping the lower; distances collide's
+#   broad phase took at the vertices are not taken again; with a ``cutoff`` (collide's margin) a
+#   triangle or cell proven to stay above it is not solved at all.
 
 LIPSCHITZ = 1.0  # the bound the culls assume of the SDF, as collide's broad phase does
 _MAX_FLAT_LEVEL = 7  # subdivision levels up to this are solved flat; beyond, coarse to fine
