@@ -319,7 +319,12 @@ def interleaved_times(fns: dict, repeats: int) -> tuple[dict, dict]:
 def interleaved_seconds(fns: dict, repeats: int) -> tuple[dict, dict]:
     """Median wall time of each ``fns[name]()``, timed by :func:`interleaved_times`; and each one's results."""
     times, results = interleaved_times(fns, repeats)
-    return {name: statistics.median(t) for name, t in times.items()}, results
+    return medians(times), results
+
+
+def medians(times: dict) -> dict:
+    """The median of each list of wall times in ``times``."""
+    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def paired_ratio(numerators: list, denominators: list) -> float:
@@ -399,7 +404,7 @@ def narrow_phase_ratio(bs: BenchScene, tri: torch.Tensor, repeats: int) -> dict:
         fns["collide_no_polish"] = lambda: collide_once(bs, sdf, {"method": "amortized", "polish": False})
     rounds = NARROW_ROUNDS_PER_REPEAT * repeats
     times, results = interleaved_times(fns, rounds)
-    seconds = {name: statistics.median(t) for name, t in times.items()}
+    seconds = medians(times)
     vg = times["value_and_grad"]
     out = {"candidates": int(tri.shape[0]), "value_and_grad_s": seconds["value_and_grad"], "rounds": rounds}
     if bs.has_detector:
@@ -676,7 +681,7 @@ def contact_check(repeats: int = 5, model: str = CHECK_MODEL, shape: str = CHECK
             "amortized": lambda: zoo.collide(sdf, mesh32, margin=margin, method="amortized"),
             "fw": lambda: zoo.collide(sdf, mesh32, margin=margin, method="fw"),
         }, repeats)
-    seconds = {name: statistics.median(t) for name, t in times.items()}
+    seconds = medians(times)
     out["timing"] = {"mesh_dtype": "float32", "repeats": repeats, "amortized_s": seconds["amortized"], "fw_s": seconds["fw"],
                      "fw_iters": fw_iters, "fw_over_amortized": paired_ratio(times["fw"], times["amortized"]),
                      "amortized_phases_s": median_phases(results["amortized"]), "fw_phases_s": median_phases(results["fw"]),

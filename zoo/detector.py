@@ -596,9 +596,15 @@ def subdivision_barycentrics(n: int, dtype=torch.float32, device=None) -> torch.
     Piece k's vertex j is ``result[k, j] @ parent_vertices``. Pieces are listed with a
     consistent orientation (the "up" pieces then the "down" pieces).
     """
-    grid = _subdivision_grid(n).to(torch.float64)
-    a, b = grid[..., 0] / n, grid[..., 1] / n
-    return torch.stack([1 - a - b, a, b], dim=-1).to(dtype=dtype, device=device)
+    return _grid_barycentrics(_subdivision_grid(n), n, torch.float64).to(dtype=dtype, device=device)
+
+
+def _grid_barycentrics(grid: torch.Tensor, n, dtype) -> torch.Tensor:
+    """Integer grid coordinates (..., 2) at level ``n`` -> barycentrics (..., 3): (i, j) is (1 - (i+j)/n, i/n, j/n).
+    ``n``: an int, or a tensor that broadcasts against grid's leading dimensions ((C, 1) for grid (C, 3, 2))."""
+    g = grid.to(dtype)
+    n = torch.as_tensor(n, dtype=dtype, device=grid.device).unsqueeze(-1)
+    return torch.cat([n - g.sum(-1, keepdim=True), g], dim=-1) / n
 
 
 def _subdivision_grid(n: int, device=None) -> torch.Tensor:
@@ -634,9 +640,7 @@ def strip_levels(triangles: torch.Tensor, max_edge: float) -> tuple[torch.Tensor
 def strip_barycentrics(n: int, apex: int, dtype=torch.float32, device=None) -> torch.Tensor:
     """Vertices of the 2n - 1 strip pieces of a triangle with apex vertex ``apex``, as barycentrics of the parent:
     (2n - 1, 3, 3); see :func:`strip_levels`."""
-    grid = _strip_grid(n, apex).to(torch.float64)
-    a, b = grid[..., 0] / n, grid[..., 1] / n
-    return torch.stack([1 - a - b, a, b], dim=-1).to(dtype=dtype, device=device)
+    return _grid_barycentrics(_strip_grid(n, apex), n, torch.float64).to(dtype=dtype, device=device)
 
 
 def _strip_grid(n: int, apex: int, device=None) -> torch.Tensor:
@@ -998,8 +1002,7 @@ def _answer_pieces(detector: AmortizedDetector, shape, tri_n, table: _PointTable
     idx = torch.cat([p[1] for p in pieces])
     level = torch.cat([p[3] for p in pieces])
     grid = torch.cat([p[2] for p in pieces])
-    n = level.to(tri_n.dtype).view(-1, 1, 1)
-    corners = torch.cat([n - grid.sum(-1, keepdim=True).to(n), grid.to(n)], dim=-1) / n  # (P, 3, 3): piece vertex k in parent bary
+    corners = _grid_barycentrics(grid, level.view(-1, 1), tri_n.dtype)  # (P, 3, 3): piece vertex k in parent bary
     local, predicted = _network_answers(detector, table, idx, chunk)
     local = local.to(tri_n.dtype)
 
@@ -1129,8 +1132,7 @@ def _search_part(table: _PointTable, cell_rows, grid, level, left, best_val, bes
     while cell_rows.numel():
         idx = table.grid_points(cell_rows.repeat_interleave(3), grid.reshape(-1, 2), level.repeat_interleave(3)).reshape(-1, 3)
         values = table.f[idx]  # (C, 3)
-        n = level.view(-1, 1, 1).to(values.dtype)
-        corner_bary = torch.cat([n - grid.sum(-1, keepdim=True).to(n), grid.to(n)], dim=-1) / n  # (C, 3, 3)
+        corner_bary = _grid_barycentrics(grid, level.view(-1, 1), values.dtype)  # (C, 3, 3)
         _improve(best_val, best_bary, from_known, cell_rows.repeat_interleave(3), values.reshape(-1), corner_bary.reshape(-1, 3))
         if cull:
             lower = cell_lower_bounds(table.coords[idx], values)
