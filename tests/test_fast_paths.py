@@ -3,8 +3,8 @@
 * NeuralShape queries: the direct inverse-distance-cubed weights against the softmax-of-logs
   formula training uses (values and gradients), the fused features-and-distances pass;
 * the detector's bookkeeping: distinct rows, per-distinct-vertex features against per-triangle
-  ones, the Lipschitz lower bound of a cell, the coarse-to-fine schedule;
-* the coarse-to-fine search against the exhaustive one (every piece solved), and against the
+  ones, the Lipschitz lower bound of a cell, the pieces of a bisected triangle and the points they share;
+* the search with culls against the exhaustive one (every piece solved), and against the
   previous subdivision (every piece solved, the lowest piece's answer kept): never worse;
 * the cutoff and the known point that collide passes: the same contacts as without them.
 """
@@ -27,7 +27,6 @@ from zoo.detector import (
     AmortizedDetector,
     cell_lower_bounds,
     detect,
-    search_levels,
     solve_mesh,
     strip_barycentrics,
     strip_levels,
@@ -262,15 +261,6 @@ def test_cell_lower_bound_never_exceeds_the_minimum_of_a_1_lipschitz_sdf():
     assert float(exact_gap.median()) < 0.1  # and it is not vacuous
 
 
-def test_search_schedule_nests_and_stays_in_range():
-    n = torch.arange(1, 65)
-    c, k = search_levels(n)
-    finest = c * 2**k
-    assert bool((finest >= n).all()) and bool((c <= 7).all())
-    assert torch.equal(finest[:7], n[:7]) and bool((k[:7] == 0).all())  # up to 7: flat, the same level
-    assert bool((finest[7:] < n[7:] * 9 / 7).all())  # beyond: less than 2^k above, pieces stay in range
-
-
 # --------------------------------------------------------------------------- the search
 
 
@@ -328,12 +318,77 @@ def test_strips_tile_a_needle_with_pieces_in_range_and_fewer_than_the_regular_on
         torch.testing.assert_close(cross.norm(dim=-1).sum(), parent.norm(), rtol=1e-12, atol=0)  # ...and no gap
 
 
-def test_coarse_to_fine_search_gives_the_exhaustive_answer_and_evaluates_less():
+def pieces_reaching_the_network(monkeypatch, det, shape, vertices, faces) -> list:
+    """solve_mesh without culls; -> the pieces it hands the network: [(rows (P,), grid (P, 3, 2), levels (P,))]."""
+    seen = []
+    real = zoo.detector._answer_pieces
+
+    def spy(detector_, shape_, tri_n, table, pieces, *args, **kwargs):
+        seen.extend((p[0], p[2], p[3]) for p in pieces)
+        return real(detector_, shape_, tri_n, table, pieces, *args, **kwargs)
+
+    monkeypatch.setattr(zoo.detector, "_answer_pieces", spy)
+    solve_mesh(det, shape, vertices, faces, vertex_check=False, cull=False)
+    return seen
+
+
+def test_bisected_pieces_tile_a_long_triangle_and_are_in_range(monkeypatch):
+    # Needles (a rack's 3.0 x 0.003) and fat triangles, 8 to 100 times the range (100: over _MAX_LEVEL,
+    # whose pieces stop at 1/64 of the triangle's longest edge).
+    g = torch.Generator().manual_seed(11)
+    length = torch.tensor([0.7, 1.5, 3.0, 3.0, 0.9, 8.0], dtype=torch.float64)
+    width = torch.tensor([0.003, 0.01, 0.003, 0.5, 0.6, 0.02], dtype=torch.float64)
+    a = torch.randn(6, 3, generator=g, dtype=torch.float64) * 0.1
+    along = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=torch.float64), dim=-1)
+    across = torch.nn.functional.normalize(torch.linalg.cross(along, torch.randn(6, 3, generator=g, dtype=torch.float64)), dim=-1)
+    tri = torch.stack([a, a + length[:, None] * along, a + 0.3 * length[:, None] * along + width[:, None] * across], 1)
+    shape, det = TorusWithCodes(), detector()
+    max_edge = det.edge_range[1]
+    assert bool((subdivision_levels(tri, max_edge) > 7).all())  # all bisected
+    v, inv = unique_rows(tri.reshape(-1, 3))
+    seen = pieces_reaching_the_network(monkeypatch, det, shape, v, inv.reshape(-1, 3))
+    rows, grid, level = (torch.cat(t) for t in zip(*seen))
+    corners = zoo.detector._grid_barycentrics(grid, level.view(-1, 1), torch.float64)  # (P, 3, 3) parent barycentrics
+    pieces = torch.einsum("pjk,pkc->pjc", corners, tri[rows])
+    longest = edge_lengths(tri).amax(dim=-1)
+    allowed = torch.clamp_min(longest / 64, max_edge)[rows]
+    assert bool((edge_lengths(pieces).amax(dim=-1) <= allowed * (1 + 1e-9)).all())  # in range
+    for r in range(tri.shape[0]):
+        mine = pieces[rows == r]
+        parent = torch.linalg.cross(tri[r, 1] - tri[r, 0], tri[r, 2] - tri[r, 0], dim=-1)
+        cross = torch.linalg.cross(mine[:, 1] - mine[:, 0], mine[:, 2] - mine[:, 0], dim=-1)
+        assert bool(((cross @ parent) > 0).all())  # oriented as the parent, so no overlap...
+        torch.testing.assert_close(cross.norm(dim=-1).sum(), parent.norm(), rtol=1e-9, atol=0)  # ...and no gap
+    # a needle's pieces stay needles along it: a few per range of its length (200 here), not the
+    # n^2 = 1,444 similar pieces of a regular subdivision
+    n = math.ceil(3.0 / max_edge)
+    assert int((rows == 2).sum()) < 6 * n
+
+
+def test_bisected_neighbours_share_the_points_on_their_common_edge(monkeypatch):
+    # Two long triangles on either side of one edge, listed with opposite orientations: every point
+    # evaluated is distinct, so the edge's points were evaluated once for both.
+    v = torch.tensor([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.7, 0.4, 0.05], [1.3, -0.5, 0.0]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [1, 0, 3]])
+    shape, det = TorusWithCodes(), detector()
+    seen = pieces_reaching_the_network(monkeypatch, det, shape, v, faces)
+    rows, grid, level = (torch.cat(t) for t in zip(*seen))
+    corners = zoo.detector._grid_barycentrics(grid, level.view(-1, 1), torch.float64)
+    points = torch.einsum("pjk,pkc->pjc", corners, v[faces][rows]).reshape(-1, 3)
+    on_edge = points[:, 1].abs() < 1e-12
+    distinct = unique_rows(points.round(decimals=9))[0]
+    assert int(unique_rows(points[on_edge].round(decimals=9))[0].shape[0]) > 10  # both sides cut the edge
+    shape.feature_points = 0
+    solve_mesh(det, shape, v, faces, vertex_check=False, cull=False)
+    assert shape.feature_points == distinct.shape[0]  # each point once, the edge's shared
+
+
+def test_search_gives_the_exhaustive_answer_and_evaluates_less():
     shape, det = TorusWithCodes(), detector()
     tri = mixed_triangles()
     v, inv = unique_rows(tri.reshape(-1, 3))
     levels = subdivision_levels(tri, det.edge_range[1])
-    assert int((levels > 1).sum()) > 30 and int(levels.max()) > 8  # flat and coarse-to-fine levels both
+    assert int((levels > 1).sum()) > 30 and int(levels.max()) > 8  # flat and bisected levels both
     shape.feature_points = 0
     culled, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False)
     culled_points, shape.feature_points = shape.feature_points, 0

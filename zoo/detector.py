@@ -477,22 +477,28 @@ def sparsemax(scores: torch.Tensor) -> torch.Tensor:
 #
 # * every distinct vertex is evaluated once (features, and distances where they are needed):
 #   a mesh shares each vertex among about six triangles;
-# * triangles longer than the trained range are solved on the pieces of a regular subdivision
-#   (a needle's strips), searched coarse to fine, all triangles' cells one step at a time: the SDF
-#   is evaluated at the grid points of a cell (shared between cells, between levels and, along the
-#   mesh's edges, between neighbouring triangles), and a cell whose Lipschitz lower bound exceeds
-#   the best value found so far is dropped with everything inside it; the pieces that survive to
-#   the finest level run the network, and a head that models the SDF has only its lowest piece's
-#   answer evaluated;
+# * triangles up to 7x longer than the trained range are solved on the pieces of a regular
+#   subdivision (a needle's strips); longer ones are bisected across their longest edge until their
+#   pieces are in range, all triangles' cells one step at a time: the SDF is evaluated at the
+#   corners of a cell (shared between cells, between steps and, along the mesh's edges, between
+#   neighbouring triangles), and a cell whose Lipschitz lower bound exceeds the best value found so
+#   far is dropped with everything inside it; the pieces that survive run the network, and a head
+#   that models the SDF has only its lowest piece's answer evaluated. Bisection keeps a needle's
+#   pieces as thin as it is: a rack's 3.0 x 0.003 triangle costs about 10 points, not the 30 of
+#   similar pieces (mug-rack: 7,900 grid points instead of 25,300);
 # * with ``vertex_check`` (what collide uses) the network's answer on an in-range triangle is
 #   compared with the best vertex (and any known point), keeping the lower; distances collide's
 #   broad phase took at the vertices are not taken again; with a ``cutoff`` (collide's margin) a
 #   triangle or cell proven to stay above it is not solved at all.
 
 LIPSCHITZ = 1.0  # the bound the culls assume of the SDF, as collide's broad phase does
-_MAX_FLAT_LEVEL = 7  # subdivision levels up to this are solved flat; beyond, coarse to fine
-_CELL_BUDGET = 1 << 20  # cells alive at once in the coarse-to-fine search (about 50 MB of bookkeeping)
-_EDGE_KEY_VERTEX_BITS = 24  # edge points are shared between triangles for meshes of < 2^24 vertices
+_MAX_FLAT_LEVEL = 7  # subdivision levels up to this are solved flat; beyond, by bisection
+_MAX_LEVEL = 64  # pieces per edge at most: a longer triangle is solved on pieces over the trained range
+# The grid that bisected cells live on: a midpoint of two of its points is one of its points for
+# 15 generations of bisection, more than a triangle of _MAX_LEVEL needs (about 2 per halving of its length).
+_BISECTION_LEVEL = 1 << 15
+_CELL_BUDGET = 1 << 20  # cells alive at once in the search (about 50 MB of bookkeeping)
+_KEY_ROW_BITS = 29  # point keys hold a triangle or an edge index below 2^29 and grid coordinates below 2^16
 _NETWORK_CHUNK = 4096  # pieces per network call (cache-sized: ~5% faster than one call on 16k)
 _TAG_EDGE = 1 << 62
 _TAG_FACE = 1 << 61
@@ -510,9 +516,9 @@ def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, ve
 
     In-range triangles get the network's answer (one pass; features computed once per distinct
     vertex). Triangles with an edge longer than the trained range are subdivided into the range
-    (:func:`search_levels`; a needle into strips, :func:`strip_levels`) and the answer is the lowest
-    of the pieces' answers and the grid points evaluated on the way (coarse-to-fine search, see
-    :func:`solve_mesh`).
+    (up to 7x the range into regular pieces or a needle's strips, :func:`strip_levels`; beyond, by
+    bisection) and the answer is the lowest of the pieces' answers and the grid points evaluated on
+    the way (a search with Lipschitz culls, see :func:`solve_mesh`).
     ``vertex_check=True`` also compares each in-range answer with the triangle's best vertex
     and keeps the lower (one more SDF query per triangle and one per distinct vertex).
     ``polish=True`` (the default): an in-range triangle whose lowest vertex passes the vertex test
@@ -561,7 +567,7 @@ def _scale(shape) -> float:
     return 1.0 if similarity is None else float(similarity.scale)
 
 
-def subdivision_levels(triangles: torch.Tensor, max_edge: float, max_level: int = 64) -> torch.Tensor:
+def subdivision_levels(triangles: torch.Tensor, max_edge: float, max_level: int = _MAX_LEVEL) -> torch.Tensor:
     """How many pieces per edge (M,) int64 bring every edge to at most ``max_edge``.
 
     Level n splits a triangle into n^2 similar pieces with edges 1/n as long. Capped at
@@ -569,25 +575,6 @@ def subdivision_levels(triangles: torch.Tensor, max_edge: float, max_level: int 
     """
     longest = edge_lengths(triangles).amax(dim=-1)
     return torch.ceil(longest / max_edge).clamp(1, max_level).to(torch.int64)
-
-
-def search_levels(levels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The coarse-to-fine schedule (start level c, halvings k) of each subdivision level n: (M,), (M,).
-
-    Up to ``_MAX_FLAT_LEVEL`` the pieces are searched flat (c = n, k = 0); beyond, the search
-    starts on c^2 cells and halves them k times, with c = ceil(n / 2^k) <= 7 for the smallest
-    such k. The pieces are those of level c * 2^k >= n: less than 2^k above n, and
-    c >= 4 when k >= 1, so less than n * 9/7 (the pieces' edges stay above 7/9 of the range's top).
-    """
-    c = levels.clone()
-    k = torch.zeros_like(levels)
-    for _ in range(8):  # 2^8 > any level
-        big = c > _MAX_FLAT_LEVEL
-        if not bool(big.any()):
-            break
-        k = k + big.to(k.dtype)
-        c = torch.where(big, torch.div(levels + (1 << k) - 1, 1 << k, rounding_mode="floor"), c)
-    return c, k
 
 
 def subdivision_barycentrics(n: int, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -685,18 +672,22 @@ class _PointTable:
     """Every point the search has evaluated: normalised coordinates, features and distances.
 
     Rows 0..U-1 are the mesh's distinct vertices; grid points of subdivided triangles follow,
-    found by an int64 key: a point on a mesh edge by (its two vertices, in ascending order, and
-    the reduced fraction along it), so neighbouring triangles share it; any other grid point by
-    (its triangle, its grid coordinates at the triangle's finest level).
+    found by an int64 key: a point on a mesh edge by (the edge, and the reduced fraction along it
+    from its lower-numbered vertex), so neighbouring triangles share it; any other grid point by
+    (its triangle, its grid coordinates).
     """
 
     def __init__(self, shape, vertices_n: torch.Tensor, faces: torch.Tensor, values_for: torch.Tensor,
                  given: torch.Tensor | None = None):
         """``values_for``: vertex rows whose distances are needed now; ``given``: (U,) normalised-frame
         distances at the vertices known already (NaN where not), which are not queried again."""
+        if 3 * faces.shape[0] >= 1 << _KEY_ROW_BITS:  # each triangle, and each edge, must fit a key
+            raise InputError(f"solve_mesh takes fewer than {(1 << _KEY_ROW_BITS) // 3} triangles at once, got {faces.shape[0]}: "
+                             "split the mesh")
         self.shape = shape
         self.faces = faces
-        self.share_edges = vertices_n.shape[0] < (1 << _EDGE_KEY_VERTEX_BITS)
+        self.n_vertices = vertices_n.shape[0]
+        self._face_edges: torch.Tensor | None = None  # (M, 3) edge indices, taken when a grid point first needs them
         self.coords = vertices_n
         self.f = torch.full(vertices_n.shape[:1], float("nan"), dtype=vertices_n.dtype, device=vertices_n.device)
         self.has_f = torch.zeros(vertices_n.shape[0], dtype=torch.bool, device=vertices_n.device)
@@ -779,12 +770,9 @@ class _PointTable:
         den = n
         g = torch.gcd(num, den).clamp_min(1)
         num, den = num // g, den // g
-        if self.share_edges:
-            edge_key = _TAG_EDGE | (a << 38) | (b << 14) | (num << 7) | den
-        else:
-            edge_key = torch.zeros_like(a)
-            edge = torch.zeros_like(edge)
-        face_key = _TAG_FACE | (r << 16) | (i << 8) | j
+        edge_id = self.face_edges()[r].gather(1, torch.where(on01, 0, torch.where(on02, 1, 2)).unsqueeze(1)).squeeze(1)
+        edge_key = _TAG_EDGE | (edge_id << 32) | (num << 16) | den
+        face_key = _TAG_FACE | (r << 32) | (i << 16) | j
         key = torch.where(edge, edge_key, face_key)
         # coordinates: along the edge from the canonical end, else barycentric in the triangle
         t = (num.to(self.coords.dtype) / den.to(self.coords.dtype)).unsqueeze(-1)
@@ -795,6 +783,15 @@ class _PointTable:
         xyz = torch.where(edge.unsqueeze(-1), along, inside)
         out[rest] = self._lookup_or_add(key, xyz)
         return out
+
+    def face_edges(self) -> torch.Tensor:
+        """Each triangle's edges (M, 3) as indices of the mesh's distinct edges: its edges 0-1, 0-2 and 1-2."""
+        if self._face_edges is None:
+            f = self.faces
+            ends = torch.stack([f[:, [0, 1]], f[:, [0, 2]], f[:, [1, 2]]], dim=1)  # (M, 3, 2)
+            code = ends.amin(dim=-1) * self.n_vertices + ends.amax(dim=-1)
+            self._face_edges = torch.unique(code, return_inverse=True)[1]
+        return self._face_edges
 
     def _lookup_or_add(self, key: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
         uniq, first_inverse = torch.unique(key, return_inverse=True)
@@ -860,7 +857,7 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     * In-range triangles: the network's answer; with ``vertex_check``, the lowest of it, the three
       vertices and the ``known`` point.
     * Longer triangles: the lowest of the answers on the surviving pieces and the grid points
-      evaluated (and the ``known`` point), searched coarse to fine (:func:`search_levels`).
+      evaluated (and the ``known`` point), searched with Lipschitz culls (:func:`_search`).
     * ``known``: (bary (M, 3), values (M,)) a point per triangle whose source-frame distance is
       known already, taken where lower than the answer.
     * ``vertex_values``: (V,) source-frame distances at ``vertices`` known already, NaN where not
@@ -873,8 +870,8 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     * ``polish``: in-range triangles whose lowest vertex passes the vertex test are answered there
       (:func:`_settled_at_vertex`); each other in-range answer of the network takes ``POLISH_ROUNDS``
       line-search steps (:func:`_polish`) before it is compared with the vertices and the ``known``
-      point; a subdivided triangle's lowest piece answer takes one inside its piece
-      (:func:`_answer_pieces`).
+      point; a subdivided triangle's lowest piece answer takes one inside its piece (a bisected
+      triangle's, ``POLISH_ROUNDS``; :func:`_answer_pieces`).
     """
     if cutoff is not None and not vertex_check:
         raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
@@ -888,7 +885,6 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
     m_rows = local.shape[0]
     scale = _scale(shape)
     levels = subdivision_levels(tri_n, detector.edge_range[1])
-    start, halvings = search_levels(levels)
     single = levels == 1
     strips, apex = strip_levels(tri_n, detector.edge_range[1])
     striped = ~single & (strips > 0)
@@ -937,19 +933,22 @@ def solve_mesh(detector: AmortizedDetector, shape, vertices, faces, cutoff: floa
             single_rows, idx, corners = single_rows[~settled], idx[~settled], corners[~settled]
         if single_rows.numel():
             pieces.append((single_rows, idx, corners, torch.ones_like(single_rows)))
-    regular = ~single & ~striped
-    groups = []  # (rows (R,), their cells (C, 3, 2) or (R, C, 3, 2) in grid coordinates at level n, n, halvings k)
-    schedule = start * 16 + halvings  # k < 16
-    for code in torch.unique(schedule[regular]).tolist():
-        c, k = divmod(int(code), 16)
-        rows = ((schedule == code) & regular).nonzero().squeeze(-1)
-        groups.append((rows, _subdivision_grid(c, v_n.device) * (1 << k), c << k, k))  # at the finest level's coordinates
+    flat = ~single & ~striped & (levels <= _MAX_FLAT_LEVEL)
+    groups = []  # (rows (R,), their cells (C, 3, 2) or (R, C, 3, 2) in grid coordinates at level n, n, bisected)
+    for n in torch.unique(levels[flat]).tolist():
+        rows = (flat & (levels == n)).nonzero().squeeze(-1)
+        groups.append((rows, _subdivision_grid(n, v_n.device), n, False))
     for n in torch.unique(strips[striped]).tolist():
         rows = (striped & (strips == n)).nonzero().squeeze(-1)
         by_apex = torch.stack([_strip_grid(n, a, v_n.device) for a in range(3)])  # (3, 2n - 1, 3, 2)
-        groups.append((rows, by_apex[apex[rows]], n, 0))
+        groups.append((rows, by_apex[apex[rows]], n, False))
+    bisected = (~single & ~striped & ~flat).nonzero().squeeze(-1)
+    if bisected.numel():
+        groups.append((bisected, _subdivision_grid(1, v_n.device) * _BISECTION_LEVEL, _BISECTION_LEVEL, True))
     if groups:
-        pieces += _search(table, groups, best_val, best_bary, from_known, cut_n, cull)
+        # a bisected cell is a piece once its edges are in range (or 1/_MAX_LEVEL of its triangle's longest)
+        piece_edge = (edge_lengths(tri_n).amax(dim=-1) / _MAX_LEVEL).clamp_min(detector.edge_range[1])
+        pieces += _search(table, groups, levels, piece_edge, best_val, best_bary, from_known, cut_n, cull)
 
     if pieces:
         _answer_pieces(detector, shape, tri_n, table, pieces, best_val, best_bary, from_known, vertex_check, polish, chunk)
@@ -991,8 +990,8 @@ def _answer_pieces(detector: AmortizedDetector, shape, tri_n, table: _PointTable
 
     * In-range triangles: the answer takes ``POLISH_ROUNDS`` line-search steps (:func:`_polish`); without
       ``vertex_check`` it is the answer as is, else it is evaluated and kept where lower.
-    * A subdivided triangle: only its lowest piece's answer is polished (one step, inside that piece)
-      and evaluated. Lowest by the network's own estimate of the SDF there (``AmortizedDetector.predict``),
+    * A subdivided triangle: only its lowest piece's answer is polished (inside that piece: one step,
+      ``POLISH_ROUNDS`` on a bisected triangle's pieces) and evaluated. Lowest by the network's own estimate of the SDF there (``AmortizedDetector.predict``),
       which spares a query per piece; a head without one has every piece's answer evaluated. The polish
       moves a point by a fraction of its piece, and the piece is in the trained range, so the parabola
       spans no more than the polish of an in-range triangle does (a whole subdivided triangle's edge
@@ -1022,7 +1021,11 @@ def _answer_pieces(detector: AmortizedDetector, shape, tri_n, table: _PointTable
     chosen = torch.cat([single, multi])
     piece_bary = local[chosen]
     if polish:
-        rounds = torch.cat([torch.full_like(single, POLISH_ROUNDS), torch.ones_like(multi)])
+        # A flat piece takes one step. A bisected triangle's pieces are slivers of a needle far over the
+        # range, whose minimum lies on a long side more often than not: one step heads for a corner, the
+        # second reaches the side (mug-rack, contacts' mean optimality 8.7e-4 with one step, 4.4e-4 with two).
+        bisected = level[chosen] == _BISECTION_LEVEL
+        rounds = torch.where((level[chosen] == 1) | bisected, POLISH_ROUNDS, 1)
         piece_bary = _polish(shape, table.coords[idx[chosen]], piece_bary, table, idx[chosen], rounds)
     bary = _to_parent(piece_bary, corners[chosen])
     r = rows[chosen]
@@ -1093,25 +1096,28 @@ def _to_parent(local_bary: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     return bary / bary.sum(dim=-1, keepdim=True)
 
 
-def _search(table: _PointTable, groups: list, best_val, best_bary, from_known, cut_n, cull: bool) -> list:
-    """Coarse-to-fine search of the subdivided triangles: -> their surviving pieces, a list of (rows (P,),
-    point indices (P, 3), grid coordinates (P, 3, 2), levels (P,)).
+def _search(table: _PointTable, groups: list, levels, piece_edge, best_val, best_bary, from_known, cut_n,
+            cull: bool) -> list:
+    """Search of the subdivided triangles: -> their surviving pieces, a list of (rows (P,), point indices
+    (P, 3), grid coordinates (P, 3, 2), levels (P,)).
 
     ``groups``: (rows (R,), cells (C, 3, 2) shared or (R, C, 3, 2) per row, in grid coordinates at
-    level n, n, k): each cell is evaluated at its corners, culled, and halved (:func:`_split_cells`)
-    until it has been halved k times; what survives the last cull is a piece. All groups share each
-    step's queries, a step costing its bookkeeping once, not once per group. ``best_*`` take every grid
-    point evaluated. Rows are searched in parts of about ``_CELL_BUDGET`` cells at their finest.
+    level n, n, bisected). Each cell is evaluated at its corners and culled; a flat cell that survives
+    is a piece; a bisected cell is halved at the midpoint of its longest edge until its
+    edges are at most ``piece_edge`` (M,) of its row, and evaluated and culled at every step. All
+    groups share each step's queries, a step costing its bookkeeping once, not once per group.
+    ``best_*`` take every grid point evaluated. Rows are searched in parts of about ``_CELL_BUDGET``
+    cells at their finest (a bisected row of subdivision level n (``levels`` (M,)): 2 n^2 at most).
     """
-    rows, grid, level, left = [], [], [], []
-    for r, base, n, k in groups:
+    rows, grid, level, bisect = [], [], [], []
+    for r, base, n, bisected in groups:
         cells_per_row = base.shape[-3]
         rows.append(r.repeat_interleave(cells_per_row))
         grid.append(base.reshape(-1, 3, 2) if base.dim() == 4 else base.repeat(r.numel(), 1, 1))
         level.append(torch.full_like(rows[-1], n))
-        left.append(torch.full_like(rows[-1], k))
-    rows, grid, level, left = (torch.cat(t) for t in (rows, grid, level, left))
-    finest = 4 ** left  # cells a cell becomes at its finest; a row's cells are adjacent, so parts keep rows whole
+        bisect.append(torch.full_like(rows[-1], bisected, dtype=torch.bool))
+    rows, grid, level, bisect = (torch.cat(t) for t in (rows, grid, level, bisect))
+    finest = torch.where(bisect, 2 * levels[rows].square(), 1)  # a row's cells are adjacent, so parts keep rows whole
     part = (finest.cumsum(0) - finest) // _CELL_BUDGET
     first = torch.ones_like(part, dtype=torch.bool)
     first[1:] = rows[1:] != rows[:-1]
@@ -1119,15 +1125,15 @@ def _search(table: _PointTable, groups: list, best_val, best_bary, from_known, c
     pieces = []
     for p in torch.unique(part).tolist():
         take = part == p
-        pieces += _search_part(table, rows[take], grid[take], level[take], left[take], best_val, best_bary,
+        pieces += _search_part(table, rows[take], grid[take], level[take], bisect[take], piece_edge, best_val, best_bary,
                                from_known, cut_n, cull)
     return pieces
 
 
-def _search_part(table: _PointTable, cell_rows, grid, level, left, best_val, best_bary, from_known, cut_n,
-                 cull: bool) -> list:
+def _search_part(table: _PointTable, cell_rows, grid, level, bisect, piece_edge, best_val, best_bary, from_known,
+                 cut_n, cull: bool) -> list:
     """:func:`_search` on cells (C,) of rows ``cell_rows``, grid coordinates ``grid`` (C, 3, 2) at ``level`` (C,),
-    ``left`` (C,) halvings to go."""
+    ``bisect`` (C,) bool: still to be halved down to ``piece_edge``."""
     pieces = []
     while cell_rows.numel():
         idx = table.grid_points(cell_rows.repeat_interleave(3), grid.reshape(-1, 2), level.repeat_interleave(3)).reshape(-1, 3)
@@ -1139,22 +1145,27 @@ def _search_part(table: _PointTable, cell_rows, grid, level, left, best_val, bes
             keep = lower <= best_val[cell_rows]
             if cut_n is not None:
                 keep &= lower <= cut_n
-            cell_rows, grid, idx, level, left = cell_rows[keep], grid[keep], idx[keep], level[keep], left[keep]
-        done = left == 0
+            cell_rows, grid, idx, level, bisect = cell_rows[keep], grid[keep], idx[keep], level[keep], bisect[keep]
+        longest, edge = edge_lengths(table.coords[idx]).max(dim=-1)
+        a, b, c = _corners_from_edge(grid, edge)
+        on_grid = ((a + b) % 2 == 0).all(dim=-1)  # the midpoint is a grid point
+        go = bisect & (longest > piece_edge[cell_rows]) & on_grid
+        done = ~go
         if bool(done.any()):
             pieces.append((cell_rows[done], idx[done], grid[done], level[done]))
-        go = ~done
-        cell_rows, level, left = (t[go].repeat_interleave(4) for t in (cell_rows, level, left - 1))
-        grid = _split_cells(grid[go])
+        # the halves (A, M, C) then (M, B, C): all first halves, then all second ones, oriented as the parent
+        a, b, c = a[go], b[go], c[go]
+        m = (a + b) // 2
+        grid = torch.cat([torch.stack([a, m, c], 1), torch.stack([m, b, c], 1)])
+        cell_rows, level, bisect = (t[go].repeat(2) for t in (cell_rows, level, bisect))
     return pieces
 
 
-def _split_cells(grid: torch.Tensor) -> torch.Tensor:
-    """Each cell (C, 3, 2) (even integer coordinates) -> its four halves (4C, 3, 2), in order per cell."""
-    a, b, c = grid[:, 0], grid[:, 1], grid[:, 2]
-    ab, bc, ca = (a + b) // 2, (b + c) // 2, (c + a) // 2
-    return torch.stack([torch.stack([a, ab, ca], 1), torch.stack([ab, b, bc], 1), torch.stack([ca, bc, c], 1),
-                        torch.stack([bc, ca, ab], 1)], dim=1).reshape(-1, 3, 2)
+def _corners_from_edge(grid: torch.Tensor, edge: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The corners A, B, C (C, 2) each of cells (C, 3, 2) whose edge ``edge`` (C,) (edge k from corner k to k + 1) runs from A to B."""
+    order = (edge.view(-1, 1) + torch.arange(3, device=grid.device)) % 3
+    a, b, c = (grid.gather(1, order[:, k].view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1) for k in range(3))
+    return a, b, c
 
 
 def _improve(best_val, best_bary, from_known, rows, values, bary) -> None:
