@@ -28,12 +28,12 @@ from __future__ import annotations
 import json
 import statistics
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
-from zoo.detector import detect
+from zoo.detect import detect
 from zoo.errors import InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points
@@ -189,7 +189,7 @@ def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
 def polished_best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
     """The baseline that isolates the network's part in ``amortized+ls``: the same polish (the vertex test,
     then ``POLISH_ROUNDS`` line-search steps) from the lowest vertex instead of the network's answer."""
-    from zoo.detector import POLISH_LINE_STEPS, POLISH_ROUNDS
+    from zoo.detect import POLISH_LINE_STEPS, POLISH_ROUNDS
     from zoo.solvers import line_search_steps, vertex_values
 
     values = vertex_values(sdf, triangles)

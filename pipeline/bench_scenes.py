@@ -437,7 +437,7 @@ def amortized_answers(sdf, tri: torch.Tensor, polish: bool = True) -> torch.Tens
     stop at: ``detect_mesh`` (the lowest of its answer, the vertices and the known point) where the SDF has it,
     else ``detect``."""
     if callable(getattr(sdf, "detect_mesh", None)):
-        from zoo.detector import unique_rows
+        from zoo.detect import unique_rows
 
         vertices, inverse = unique_rows(tri.reshape(-1, 3))
         return sdf.detect_mesh(vertices, inverse.reshape(-1, 3), polish=polish)[0]

@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from zoo.errors import InputError
-from zoo.files import atomic_path, atomic_write_text
+from zoo.files import atomic_path
 
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
 from .fit_sdf import FitConfig, load_training_data, fit_sdf, print_log, save_result
@@ -163,7 +163,7 @@ def stage_fit_sdf(run: FitRun) -> bool:
 def model_from_fit(path: Path, run: FitRun):
     """The Model of a fit-sdf output, with the samples' similarities (source -> normalised)."""
     from zoo.model import Model
-    from zoo.neural import NeuralSDF, NeuralSDFConfig
+    from zoo.neural import NeuralSDF
 
     from .samples import read_samples
 

@@ -25,14 +25,14 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path
-from zoo.neural import NeuralSDF, NeuralSDFConfig, count_parameters
+from zoo.neural import NeuralSDF, NeuralSDFConfig
 
 from .stages import reject_unknown_keys
 

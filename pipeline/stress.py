@@ -238,7 +238,7 @@ def _saturation(ctx):
     shape, model = ctx.get("shape_sdf"), ctx.get("model")
     if shape is None or model is None or model.detector is None:
         return "needs --model with a detector", "skipped: no detector", True
-    from zoo.detector import vertex_features
+    from zoo.detect import vertex_features
 
     tris = triangles_around(shape.normalised, 256, 0.03, 0.02)
     feats = vertex_features(shape, tris)
@@ -278,7 +278,7 @@ def _fit_extremes() -> tuple[dict, bool]:
     grow with the targets."""
     from dataclasses import replace
 
-    from pipeline.fit_sdf import FitConfig, make_optimizer, preset, stack_samples, train_step
+    from pipeline.fit_sdf import make_optimizer, preset, stack_samples, train_step
     from zoo.neural import NeuralSDF, NeuralSDFConfig
 
     quick = preset("quick")

@@ -15,9 +15,9 @@ import trimesh
 
 import zoo
 from zoo.collide import METHODS, candidate_triangles, clear_voxel_cache
-from zoo.detector import cell_lower_bounds
+from zoo.detect import cell_lower_bounds
 from zoo.errors import InputError
-from zoo.geometry import bary_to_points, bounding_radius
+from zoo.geometry import bary_to_points
 from zoo.voxel import VoxelSDF
 
 # -- meshes and references ------------------------------------------------------------------
@@ -453,7 +453,7 @@ def test_polish_false_gives_the_unpolished_narrow_phase_and_only_for_amortized()
 
 def _indexed(tri: torch.Tensor):
     """Triangles (M, 3, 3) -> (distinct vertices (V, 3), faces (M, 3))."""
-    from zoo.detector import unique_rows
+    from zoo.detect import unique_rows
 
     v, inverse = unique_rows(tri.reshape(-1, 3))
     return v, inverse.reshape(-1, 3)

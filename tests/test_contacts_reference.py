@@ -26,7 +26,6 @@ import math
 import numpy as np
 import pytest
 import torch
-import trimesh
 
 import zoo
 from pipeline.bench_scenes import CHECK_MARGIN_NORMALISED as MARGIN_NORMALISED
@@ -120,7 +119,7 @@ def scene():
 def test_amortized_contacts_match_the_multi_start_reference(scene, subject):
     # mugs@1.1.0: the network's answers alone gave recall 0.940 (79 of 84), precision 1.000;
     # collide's amortized narrow phase also keeps the triangle's best vertex and its centroid
-    # where they are lower (zoo.detector.solve_mesh), which gives recall 0.976 (82 of 84), precision 1.000.
+    # where they are lower (zoo.detect.solve_mesh), which gives recall 0.976 (82 of 84), precision 1.000.
     c = zoo.collide(SUBJECT, (scene["vertices"], scene["faces"]), margin=scene["margin"], method="amortized")
     assert c.n_triangles == 20480
     found = set(c.triangles.tolist()) & scene["counted"]

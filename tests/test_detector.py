@@ -24,12 +24,13 @@ from pipeline.train_detector import (
     train,
 )
 from pipeline.triangle_sampling import sample_constrained_triangles
-from zoo.detector import AmortizedDetector, detect, quadratic_argmin, quadratic_minimum, subdivision_barycentrics
+from zoo.detect import detect, subdivision_barycentrics
+from zoo.detector import AmortizedDetector, quadratic_argmin, quadratic_minimum
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, perimeter
 from zoo.meshes import Similarity
 from zoo.neural import interpolate_codes
-from zoo.solvers import frank_wolfe, optimality, reference
+from zoo.solvers import optimality, reference
 
 MODES = ("condition", "context", "temperature", "additive", "none")
 

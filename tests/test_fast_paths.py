@@ -20,11 +20,11 @@ import pytest
 import torch
 
 import zoo
+import zoo.detect
 from zoo import neural
-from zoo.detector import (
+from zoo.detect import (
     POLISH_LINE_STEPS,
     POLISH_ROUNDS,
-    AmortizedDetector,
     cell_lower_bounds,
     detect,
     solve_mesh,
@@ -35,6 +35,7 @@ from zoo.detector import (
     unique_rows,
     vertex_features,
 )
+from zoo.detector import AmortizedDetector
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, edge_lengths
 from zoo.meshes import Similarity
@@ -321,13 +322,13 @@ def test_strips_tile_a_needle_with_pieces_in_range_and_fewer_than_the_regular_on
 def pieces_reaching_the_network(monkeypatch, det, shape, vertices, faces) -> list:
     """solve_mesh without culls; -> the pieces it hands the network: [(rows (P,), grid (P, 3, 2), levels (P,))]."""
     seen = []
-    real = zoo.detector._answer_pieces
+    real = zoo.detect._answer_pieces
 
     def spy(detector_, shape_, tri_n, table, pieces, *args, **kwargs):
         seen.extend((p[0], p[2], p[3]) for p in pieces)
         return real(detector_, shape_, tri_n, table, pieces, *args, **kwargs)
 
-    monkeypatch.setattr(zoo.detector, "_answer_pieces", spy)
+    monkeypatch.setattr(zoo.detect, "_answer_pieces", spy)
     solve_mesh(det, shape, vertices, faces, vertex_check=False, cull=False)
     return seen
 
@@ -348,7 +349,7 @@ def test_bisected_pieces_tile_a_long_triangle_and_are_in_range(monkeypatch):
     v, inv = unique_rows(tri.reshape(-1, 3))
     seen = pieces_reaching_the_network(monkeypatch, det, shape, v, inv.reshape(-1, 3))
     rows, grid, level = (torch.cat(t) for t in zip(*seen))
-    corners = zoo.detector._grid_barycentrics(grid, level.view(-1, 1), torch.float64)  # (P, 3, 3) parent barycentrics
+    corners = zoo.detect._grid_barycentrics(grid, level.view(-1, 1), torch.float64)  # (P, 3, 3) parent barycentrics
     pieces = torch.einsum("pjk,pkc->pjc", corners, tri[rows])
     longest = edge_lengths(tri).amax(dim=-1)
     allowed = torch.clamp_min(longest / 64, max_edge)[rows]
@@ -373,7 +374,7 @@ def test_bisected_neighbours_share_the_points_on_their_common_edge(monkeypatch):
     shape, det = TorusWithCodes(), detector()
     seen = pieces_reaching_the_network(monkeypatch, det, shape, v, faces)
     rows, grid, level = (torch.cat(t) for t in zip(*seen))
-    corners = zoo.detector._grid_barycentrics(grid, level.view(-1, 1), torch.float64)
+    corners = zoo.detect._grid_barycentrics(grid, level.view(-1, 1), torch.float64)
     points = torch.einsum("pjk,pkc->pjc", corners, v[faces][rows]).reshape(-1, 3)
     on_edge = points[:, 1].abs() < 1e-12
     distinct = unique_rows(points.round(decimals=9))[0]
@@ -408,9 +409,9 @@ def test_search_in_parts_gives_the_answers_of_one_search(monkeypatch):
     v, inv = unique_rows(tri.reshape(-1, 3))
     whole = solve_mesh(det, shape, v, inv.reshape(-1, 3))
     parts = []
-    real = zoo.detector._search_part
-    monkeypatch.setattr(zoo.detector, "_search_part", lambda *a, **k: parts.append(a[1]) or real(*a, **k))
-    monkeypatch.setattr(zoo.detector, "_CELL_BUDGET", 64)
+    real = zoo.detect._search_part
+    monkeypatch.setattr(zoo.detect, "_search_part", lambda *a, **k: parts.append(a[1]) or real(*a, **k))
+    monkeypatch.setattr(zoo.detect, "_CELL_BUDGET", 64)
     split = solve_mesh(det, shape, v, inv.reshape(-1, 3))
     assert len(parts) > 3
     assert sum(len(set(p.tolist())) for p in parts) == len(set(torch.cat(parts).tolist()))  # each row in one part only

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.normalise import read_normalised, run_normalise
+from pipeline.normalise import read_normalised
 from pipeline.samples import (
     SCHEMA_VERSION,
     SampleConfig,

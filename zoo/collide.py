@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .detector import cell_lower_bounds, unique_rows
+from .detect import cell_lower_bounds, unique_rows
 from .errors import InputError
 from .geometry import (
     as_pose,
@@ -160,7 +160,7 @@ def _vertex_cull(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float
     """Faces (N, 3) into ``vertices`` (V, 3) (the SDF's frame) -> (may touch (N,) bool, f at the vertices (V,)).
 
     A face is dropped when the lower bound of a 1-Lipschitz f over it, from f at its three vertices
-    (:func:`zoo.detector.cell_lower_bounds`), exceeds ``margin``. f is evaluated once per distinct
+    (:func:`zoo.detect.cell_lower_bounds`), exceeds ``margin``. f is evaluated once per distinct
     vertex, about half as many queries as one per face, and the amortized narrow phase reuses the
     values; entries of the returned f are NaN where it was not evaluated. Many vertices first go
     through :func:`_cell_bounds`: a face its cheaper bounds clear costs no vertex query.
@@ -245,7 +245,7 @@ def collide(
         refine: Frank-Wolfe steps warm-started from the method's answer (0: none).
         voxel_resolution: samples per axis of the grid for "voxel-fw".
         polish: "amortized" on a model's shape only: the vertex test, then line-search steps from
-            the network's answers where it fails (``zoo.detector.solve_mesh``). False is the forward
+            the network's answers where it fails (``zoo.detect.solve_mesh``). False is the forward
             pass alone (no gradient query in the narrow phase), less precise: the scene bench
             (``zoo bench --scenes``) measures both.
 

@@ -103,8 +103,8 @@ class Model:
 
         ``polish`` (default): a triangle whose lowest vertex satisfies the KKT conditions (its gradient
         there, one query per distinct vertex) is answered at that vertex; the others take the network's
-        answer and ``zoo.detector.POLISH_ROUNDS`` Frank-Wolfe steps with a line search (each one
-        value-and-gradient query and up to ``zoo.detector.POLISH_LINE_STEPS`` value queries);
+        answer and ``zoo.detect.POLISH_ROUNDS`` Frank-Wolfe steps with a line search (each one
+        value-and-gradient query and up to ``zoo.detect.POLISH_LINE_STEPS`` value queries);
         ``polish=False``: the forward pass alone.
         """
         if self.detector is None:
@@ -112,7 +112,7 @@ class Model:
                 f"model {self.name!r} has no detector (its package holds no {DETECTOR_WEIGHTS}); "
                 "train one with `zoo fit-category` (detector stage), or use zoo.solvers.frank_wolfe(shape, triangles)"
             )
-        from .detector import detect
+        from .detect import detect
 
         return detect(self.detector, shape, triangles, polish=polish)
 

@@ -22,7 +22,7 @@ the (P, K) weights: no log, no exp, about half the time, the same values to floa
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
@@ -473,13 +473,13 @@ class NeuralShape(SDFBase):
         whose lowest vertex passes the vertex test (its gradient there) is answered at that vertex;
         the others' answers take line-search steps (a subdivided triangle's: one, on its lowest piece)
         before that comparison. ``vertex_values`` (V,): distances at ``vertices`` the caller has already
-        (NaN where it has none), which are then not queried again. See :func:`zoo.detector.solve_mesh`.
+        (NaN where it has none), which are then not queried again. See :func:`zoo.detect.solve_mesh`.
         """
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
         if getattr(self.model, "detector", None) is None:
             return self.model.detect(self, vertices[faces])  # raises the model's own error
-        from .detector import solve_mesh
+        from .detect import solve_mesh
 
         return solve_mesh(self.model.detector, self, vertices, faces, cutoff=cutoff, known=known, vertex_check=True,
                           polish=polish, vertex_values=vertex_values)
