@@ -91,9 +91,9 @@ def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, ve
     ``polish=True`` (the default): an in-range triangle whose lowest vertex passes the vertex test
     (:func:`_settled_at_vertex`) is answered there; the others end with ``POLISH_ROUNDS`` Frank-Wolfe
     steps with a parabolic line search from the network's answer (:func:`_polish`; each one
-    value-and-gradient query and ``POLISH_LINE_STEPS`` value queries; on a subdivided triangle, one
-    step from the lowest piece's answer, inside that piece); ``polish=False`` returns the network's
-    answer of the single forward pass.
+    value-and-gradient query and ``POLISH_LINE_STEPS`` value queries; on a subdivided triangle, from
+    the lowest piece's answer, inside that piece: one step, ``POLISH_ROUNDS`` on a bisected one);
+    ``polish=False`` returns the network's answer of the single forward pass.
     """
     tri_src = as_triangles(triangles)
     vertices, inverse = unique_rows(tri_src.reshape(-1, 3))
