@@ -713,15 +713,18 @@ def _search_part(table: _PointTable, cell_rows, grid, level, bisect, piece_edge,
             if cut_n is not None:
                 keep &= lower <= cut_n
             cell_rows, grid, idx, level, bisect = cell_rows[keep], grid[keep], idx[keep], level[keep], bisect[keep]
-        longest, edge = edge_lengths(table.coords[idx]).max(dim=-1)
-        a, b, c = _corners_from_edge(grid, edge)
+        # only bisected cells are measured: a flat cell is a piece as it stands
+        go = bisect.nonzero().squeeze(-1)
+        longest, edge = edge_lengths(table.coords[idx[go]]).max(dim=-1)
+        a, b, c = _corners_from_edge(grid[go], edge)
         on_grid = ((a + b) % 2 == 0).all(dim=-1)  # the midpoint is a grid point
-        go = bisect & (longest > piece_edge[cell_rows]) & on_grid
-        done = ~go
+        halve = (longest > piece_edge[cell_rows[go]]) & on_grid
+        go, a, b, c = go[halve], a[halve], b[halve], c[halve]
+        done = torch.ones_like(bisect)
+        done[go] = False
         if bool(done.any()):
             pieces.append((cell_rows[done], idx[done], grid[done], level[done]))
         # the halves (A, M, C) then (M, B, C): all first halves, then all second ones, oriented as the parent
-        a, b, c = a[go], b[go], c[go]
         m = (a + b) // 2
         grid = torch.cat([torch.stack([a, m, c], 1), torch.stack([m, b, c], 1)])
         cell_rows, level, bisect = (t[go].repeat(2) for t in (cell_rows, level, bisect))
