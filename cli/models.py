@@ -7,8 +7,15 @@ import typer
 from .main import app
 
 
-# The numbers a reader compares first, in this order; any other metric shows in `zoo info`.
-HEADLINE_METRICS = ("near_p50", "near_p90", "sign_agreement", "optimality_mean", "nme_mean")
+# The numbers a reader compares first, in this order, with their labels in `zoo list`; `zoo info` shows every metric.
+HEADLINE_METRICS = {
+    "near_p50": "near p50",  # SDF error near the surface, fraction of the shape's size
+    "near_p90": "near p90",
+    "sign_agreement": "sign agr.",
+    "detector_seen_polished_optimality_mean": "detect opt.",  # equation (12), mean over the bench's seen triangles
+    "optimality_mean": "opt. mean",
+    "nme_mean": "NME mean",
+}
 
 
 def _flat_numbers(metrics: dict, prefix: str = "") -> dict[str, float]:
@@ -21,12 +28,14 @@ def _flat_numbers(metrics: dict, prefix: str = "") -> dict[str, float]:
     return flat
 
 
-def _metrics_summary(metrics: dict, limit: int = 3) -> str:
-    """A few headline numbers for a table cell; `zoo info` shows them all."""
-    flat = _flat_numbers(metrics)
-    rank = {name: i for i, name in enumerate(HEADLINE_METRICS)}
-    keys = sorted(flat, key=lambda k: rank.get(k.rsplit(".", 1)[-1], len(rank)))[:limit]
-    return ", ".join(f"{k}={flat[k]:.3g}" for k in keys)
+def _metrics_summary(metrics: dict, limit: int = 4) -> str:
+    """The headline numbers among ``metrics`` (nested keys are matched by their last part), at most
+    ``limit``, one per line under their short label, so that the table cell stays narrow."""
+    found = {}
+    for key, value in _flat_numbers(metrics).items():
+        found.setdefault(key.rsplit(".", 1)[-1], value)  # where two share a name, the first listed
+    lines = [f"{label} {found[name]:.3g}" for name, label in HEADLINE_METRICS.items() if name in found]
+    return "\n".join(lines[:limit]) or "see `zoo info`"
 
 
 @app.command("list")

@@ -271,6 +271,17 @@ def test_cli_list_and_info(released):
     assert "README.md" in shown.output and "sha256" in shown.output
 
 
+def test_list_metrics_cell_keeps_headlines_in_order():
+    from cli.models import _metrics_summary
+
+    metrics = {"fit_seconds": 96.1, "detector_seen_polished_optimality_mean": 2.4e-4,
+               "train": {"sign_agreement": 0.9987, "near_p90": 0.005, "near_p50": 0.00136}}
+    assert _metrics_summary(metrics).splitlines() == [
+        "near p50 0.00136", "near p90 0.005", "sign agr. 0.999", "detect opt. 0.00024"]
+    assert _metrics_summary(metrics, limit=2).splitlines() == ["near p50 0.00136", "near p90 0.005"]
+    assert _metrics_summary({"fit_seconds": 96.1}) == "see `zoo info`"
+
+
 def test_cli_package(zoo_home):
     runner, app = _cli()
     fit = make_fit_output(zoo_home / "fits" / "bottles", "bottles", BOTTLE_SHAPES)
