@@ -145,7 +145,9 @@ def scene_paths(names=None) -> list[Path]:
 def load_bench_scene(path: str | os.PathLike, standin_dir: str | os.PathLike = "out/bench/standins",
                      allow_standin: bool = True) -> BenchScene:
     """Load a scene; where its model is not packaged yet, put a stand-in SDF in (see the module doc)."""
-    import tomllib
+    from zoo.registry import toml_parser
+
+    tomllib = toml_parser()
 
     path = Path(path)
     note = ""

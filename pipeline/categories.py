@@ -22,13 +22,9 @@ from pathlib import Path
 from zoo.errors import DataError, InputError
 from zoo.files import sha256_file
 from zoo.meshes import up_rotation
+from zoo.registry import toml_parser
 
-try:
-    import tomllib
-except ImportError:  # Python 3.10: the same parser, published as tomli
-    from zoo.errors import require
-
-    tomllib = require("tomli")
+tomllib = toml_parser()
 
 MANIFEST_DIR = Path(__file__).resolve().parent.parent / "manifests" / "categories"
 DATA_ENV = "ZOO_DATA"

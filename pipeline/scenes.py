@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import os
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,8 +36,11 @@ import zoo
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.meshes import load_mesh
+from zoo.registry import toml_parser
 
 from .parts import make_part
+
+tomllib = toml_parser()
 
 ANALYTIC = {"sphere": zoo.Sphere, "box": zoo.Box, "torus": zoo.Torus, "capsule": zoo.Capsule}
 

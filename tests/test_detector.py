@@ -375,9 +375,15 @@ def test_huge_triangle_is_subdivided_and_lands_near_the_reference(trained):
     f_ours = sdf(bary_to_points(tri, ours))
     f_ref = sdf(bary_to_points(tri.double(), ref)).float()
     assert (f_ours - f_ref).max() < 2e-3  # within the pieces' size tolerance of the global minimum
-    # and the subdivision itself tiles the parent: pieces' areas sum to the parent's
-    pieces = subdivision_barycentrics(4)
-    assert pieces.shape == (16, 3, 3) and torch.allclose(pieces.sum(-1), torch.ones(16, 3))
+    # and the subdivision itself tiles the parent: pieces oriented as the parent (no overlap) whose
+    # areas sum to the parent's (no gap)
+    t = tri[0].double()
+    pieces = subdivision_barycentrics(4, dtype=torch.float64) @ t  # (16, 3, 3)
+    assert pieces.shape == (16, 3, 3)
+    parent = torch.linalg.cross(t[1] - t[0], t[2] - t[0], dim=-1)
+    cross = torch.linalg.cross(pieces[:, 1] - pieces[:, 0], pieces[:, 2] - pieces[:, 0], dim=-1)
+    assert bool(((cross @ parent) > 0).all())
+    torch.testing.assert_close(cross.norm(dim=-1).sum(), parent.norm(), rtol=1e-12, atol=0)
 
 
 def test_penetrating_triangle_gets_a_point_inside(trained):

@@ -92,21 +92,16 @@ def test_fit_category_quick_survives_kill_9(tmp_path):
     assert checkpoint.exists(), "no training checkpoint was written before the kill"
     assert not (tmp_path / "out" / "config.json").exists(), "the first run finished before it could be killed"
 
-    t0 = time.time()
     second = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
-    second_s = time.time() - t0
     assert second.returncode == 0, second.stderr
     assert "resuming from the checkpoint" in second.stderr
 
-    t0 = time.time()
     third = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert third.returncode == 0, third.stderr
     from pipeline.fit_category import STAGES
 
     assert third.stderr.count("up to date, skipped") == len(STAGES), third.stderr
-    assert ": done (" not in third.stderr, third.stderr
-    # every stage skipped: only imports and hash checks remain (machine load makes absolute times unreliable)
-    assert time.time() - t0 < second_s
+    assert ": done (" not in third.stderr, third.stderr  # every stage skipped, none ran again
 
     import zoo
 

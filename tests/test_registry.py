@@ -302,7 +302,7 @@ def test_import_zoo_loads_no_hub_hdf5_cli_or_pipeline():
 
 # --------------------------------------------------------------------------- the bundled releases
 
-# Models that must ship in zoo/pretrained (add "bottles" once it is packaged).
+# Models that must ship in zoo/pretrained.
 BUNDLED = ("mugs", "bottles", "gears", "bolts")
 
 

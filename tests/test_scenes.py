@@ -91,6 +91,14 @@ def test_stress_malformed_inputs_all_raise_typed_errors(tmp_path):
     malformed = dict(CASES)["malformed input"]
     expected, observed, ok = malformed({"sdf": zoo.Sphere(0.3)})
     assert ok, observed
+    # checked here too, not only by the harness's own verdict: each case raised a ZooError subclass
+    # (named first in its line) with a message beyond the class name
+    error_names = {name for name in dir(zoo.errors) if isinstance(getattr(zoo.errors, name), type)
+                   and issubclass(getattr(zoo.errors, name), zoo.errors.ZooError)}
+    assert len(observed) >= 10
+    for case, line in observed.items():
+        name, _, message = line.partition(": ")
+        assert name in error_names and len(message) > 20, (case, line)
 
 
 def test_stress_report_is_written(tmp_path, monkeypatch):

@@ -126,8 +126,13 @@ def test_follows_the_sdf_protocol_and_keeps_dtypes():
     for dtype in (torch.float32, torch.float64):
         d, g = v.value_and_grad(torch.zeros(4, 3, dtype=dtype))
         assert d.dtype == g.dtype == dtype and v(torch.zeros(4, 3, dtype=dtype)).dtype == dtype
-    # a voxel grid of a voxel grid is an SDF too
-    VoxelSDF(v, resolution=4)
+    # a voxel grid of a voxel grid is an SDF too, and samples it exactly at its own grid points
+    coarse = VoxelSDF(v, resolution=4)
+    check_sdf(coarse)
+    lo, hi = coarse.bounds
+    axes = [torch.linspace(float(lo[i]), float(hi[i]), 4) for i in range(3)]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    torch.testing.assert_close(coarse(grid), v(grid), atol=1e-5, rtol=0)
 
 
 def test_build_is_chunked_and_chunking_does_not_change_the_grid():

@@ -109,20 +109,19 @@ def model_names() -> list[str]:
 # --------------------------------------------------------------------------- manifests
 
 
-def _toml():
+def toml_parser():
+    """The TOML parser module: ``tomllib``, or on Python 3.10 ``tomli`` (the same parser, a dependency there)."""
     try:
         import tomllib
     except ImportError:  # Python 3.10
-        from .errors import require
-
-        return require("tomli", extra="pipeline")
+        import tomli as tomllib
     return tomllib
 
 
 def read_manifest_file(path: str | os.PathLike) -> dict:
     path = Path(path)
     try:
-        return _toml().loads(path.read_text())
+        return toml_parser().loads(path.read_text())
     except FileNotFoundError:
         raise DataError(f"model manifest {path} does not exist") from None
     except ValueError as exc:  # tomllib.TOMLDecodeError derives from ValueError
