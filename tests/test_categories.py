@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import hashlib
-import os
 import shutil
 from pathlib import Path
 
 import pytest
 
 from pipeline.categories import list_categories, load_category, resolve_data_dir, verify_meshes
+from real_meshes import DATA, needs_data
 from zoo.errors import DataError, InputError
 
-DATA = Path(os.environ.get("ZOO_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "meshes"))
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} not present (set ZOO_DATA)")
 
 SPLIT_COUNTS = {  # (train, test, scene), from ../shared/meshes/SOURCES.md
     "mugs": (54, 17, 0),

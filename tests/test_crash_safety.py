@@ -43,6 +43,7 @@ import numpy as np
 import pytest
 import torch
 
+from real_meshes import SKIP_REASON, zoo_data
 from zoo.files import CHECKSUMS, read_checksums, sha256_file, verify_directory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,12 +54,6 @@ DONE = re.compile(r"^(?P<stage>[\w-]+): (?P<what>done|up to date, skipped) \(")
 TIMING_KEYS = re.compile(r"(^|_)(seconds|elapsed|us_per_point)$")  # fit_seconds, query_us_per_point, ...
 
 
-def zoo_data() -> Path | None:
-    for candidate in (os.environ.get("ZOO_DATA"), ROOT.parent / "shared" / "meshes"):
-        if candidate and (Path(candidate) / "mug").is_dir():
-            return Path(candidate)
-    return None
-
 
 def stage_names() -> list[str]:
     from pipeline.fit_category import STAGES
@@ -66,7 +61,7 @@ def stage_names() -> list[str]:
     return [name for name, _ in STAGES]
 
 
-needs_meshes = pytest.mark.skipif(zoo_data() is None, reason="needs the real meshes: set ZOO_DATA")
+needs_meshes = pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
 
 
 # --------------------------------------------------------------------------- one run in a subprocess

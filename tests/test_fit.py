@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from pipeline.fit_sdf import FitConfig, fit_sdf, stack_samples, step_batch
+from real_meshes import SKIP_REASON, zoo_data
 from zoo.neural import NeuralSDFConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,15 +69,9 @@ def test_a_checkpoint_of_another_config_is_ignored(tmp_path):
     assert other.resumed_from == 0
 
 
-def zoo_data() -> Path | None:
-    for candidate in (os.environ.get("ZOO_DATA"), ROOT.parent / "shared" / "meshes"):
-        if candidate and (Path(candidate) / "mug").is_dir():
-            return Path(candidate)
-    return None
-
 
 @pytest.mark.slow
-@pytest.mark.skipif(zoo_data() is None, reason="needs the real meshes: set ZOO_DATA")
+@pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
 def test_fit_category_quick_survives_kill_9(tmp_path):
     """Killed with SIGKILL mid-run, rerun finishes (resuming), a third run skips every stage."""
     env = {**os.environ, "ZOO_DATA": str(zoo_data()), "OMP_NUM_THREADS": "2"}

@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 import trimesh
 
+from real_meshes import DATA, needs_data
 from zoo.errors import DataError, InputError
 from zoo.meshes import Similarity, exterior_faces, load_mesh, normalise, sample_sdf, signed_distance, up_rotation
-
-DATA = Path(os.environ.get("ZOO_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "meshes"))
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} not present (set ZOO_DATA)")
 
 
 def random_rotation(rng) -> np.ndarray:

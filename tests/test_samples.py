@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import h5py
@@ -22,11 +21,10 @@ from pipeline.samples import (
     samples_path,
     write_samples,
 )
+from real_meshes import DATA, needs_data
 from zoo.errors import DataError
 from zoo.meshes import Similarity, signed_distance
 
-DATA = Path(os.environ.get("ZOO_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "meshes"))
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"data folder {DATA} not present (set ZOO_DATA)")
 
 SMALL = SampleConfig(n_points=2000, seed=3)
 
