@@ -22,27 +22,24 @@ def sphere_on_plane(method="fw"):
     }
 
 
-def exact_plane_contacts(mesh, centre, radius, margin):
-    """Independent: a flat triangle's distance to the ball is its closest point's distance minus r."""
-    hits = []
-    for i, tri in enumerate(np.asarray(mesh.vertices)[np.asarray(mesh.faces)]):
-        # the plane is z = 0 and the centre is above it: the closest point is the centre's
-        # projection clamped into the triangle; brute force over a fine barycentric grid
-        u = np.linspace(0, 1, 41)
-        a, b = np.meshgrid(u, u)
-        keep = a + b <= 1
-        bary = np.stack([a[keep], b[keep], 1 - a[keep] - b[keep]], 1)
-        d = np.linalg.norm(bary @ tri - centre, axis=1).min() - radius
-        if d <= margin:
-            hits.append(i)
-    return hits
+def exact_plane_distances(mesh, centre, radius):
+    """Independent: each triangle's exact distance to the ball, its closest point's distance minus r (F,)."""
+    from test_collide import closest_points_on_triangles
+
+    tri = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces)]
+    return np.linalg.norm(closest_points_on_triangles(centre, tri) - centre, axis=1) - radius
 
 
 def test_scene_matches_independent_contacts():
     scene = scene_from_dict(sphere_on_plane())
     contacts = run_scene(scene)
-    expected = exact_plane_contacts(scene.mesh, np.array([0.01, -0.02, 0.049]), 0.05, 0.002)
-    assert sorted(contacts.triangles.tolist()) == expected
+    exact = exact_plane_distances(scene.mesh, np.array([0.01, -0.02, 0.049]), 0.05)
+    # triangles within FW's tolerance of the margin may fall either way; every other one must match
+    sharp = np.abs(exact - scene.margin) > 1e-4
+    assert sharp.sum() > len(exact) - 20
+    found = np.zeros(len(exact), dtype=bool)
+    found[contacts.triangles.numpy()] = True
+    assert np.array_equal(found[sharp], (exact <= scene.margin)[sharp]) and found.sum() > 20
     assert float(contacts.depths.min()) == pytest.approx(-0.001, abs=2e-4)  # the ball sinks 1 mm into the plane
     assert bool((contacts.normals[:, 2] < -0.9).all())  # normals point from the ball down into the plane
 
