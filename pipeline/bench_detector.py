@@ -391,7 +391,8 @@ def pareto_plot(report: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 5))
     groups = {"fw": ("NeuralSDF+FW", "tab:blue"), "amortized+fw": ("amortized+FW refine", "tab:orange"),
               "amortized": ("amortized, one pass (ours)", "tab:red"), POLISHED: ("amortized + line search (ours)", "darkred"),
-              BEST_VERTEX: ("best vertex", "silver"), VERTEX_POLISHED: ("best vertex + line search", "tab:gray"), "pgd": ("projected gradient", "tab:green"),
+              BEST_VERTEX: ("best vertex", "silver"), VERTEX_POLISHED: ("best vertex + line search", "tab:gray"),
+              "pgd": ("projected gradient", "tab:green"),
               MIDPOINT_QUADRATIC: ("quadratic through 6 exact values", "tab:brown"),
               "voxel": ("VoxelSDF+FW", "tab:purple")}
     for prefix, (label, colour) in groups.items():
