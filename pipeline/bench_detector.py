@@ -26,6 +26,7 @@ Results are written as ``bench_detector.json`` and a Pareto plot ``bench_detecto
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import time
 from dataclasses import asdict, dataclass
@@ -93,14 +94,49 @@ def bench_triangles(shapes, config: BenchConfig, sampler=None) -> list[torch.Ten
 
 
 def quality(sdf, triangles: torch.Tensor, bary: torch.Tensor, ref_bary: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Per-triangle optimality (M,), NME (M,) and whether the reference minimum is off the vertices (M,) bool."""
+    """Per triangle: optimality (M,), NME (M,), whether the reference minimum is off the vertices (M,) bool,
+    and the SDF at the reference minimum (M,): how close the triangle comes to the surface."""
     from zoo.solvers import EDGE, minimum_location, nme, optimality
 
+    with torch.no_grad():
+        ref_min = torch.as_tensor(sdf(bary_to_points(triangles, ref_bary))).reshape(-1).float()
     return {
         "optimality": optimality(sdf, triangles, bary).float(),
         "nme": nme(bary.double(), ref_bary.double(), triangles.double()).float(),
         "off_vertex": minimum_location(ref_bary) >= EDGE,
+        "reference_min": ref_min,
     }
+
+
+# Bands of the reference minimum (normalised frame; the training triangles' centroids lie 0-0.1 from the
+# surface): where a method's mean optimality comes from, near-touching triangles or those farther out.
+MINIMUM_BANDS = (0.0, 0.005, 0.02, 0.05)
+WORST_FRACTION = 0.05
+
+
+def worst_share(values: torch.Tensor, fraction: float = WORST_FRACTION) -> float:
+    """The share of ``values``' sum (M,) held by its largest ``fraction`` of entries (at least one)."""
+    total = float(values.sum())
+    if total <= 0:
+        return 0.0
+    k = max(1, int(math.ceil(fraction * values.numel())))
+    return float(values.topk(k).values.sum()) / total
+
+
+def by_minimum_band(optimality: torch.Tensor, reference_min: torch.Tensor, bands=MINIMUM_BANDS) -> dict:
+    """{band label: {"fraction": share of the triangles, "mean": their mean optimality, "share": their part
+    of the total}} for the bands of the reference minimum [b_k, b_k+1) (the last one open above)."""
+    total = float(optimality.sum())
+    edges = list(bands) + [math.inf]
+    out = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (reference_min >= lo) & (reference_min < hi)
+        n = int(inside.sum())
+        label = f"{lo:g}-{hi:g}" if math.isfinite(hi) else f">={lo:g}"
+        out[label] = {"fraction": n / max(1, optimality.numel()),
+                      "mean": float(optimality[inside].mean()) if n else None,
+                      "share": float(optimality[inside].sum()) / total if n and total > 0 else 0.0}
+    return out
 
 
 def summarise(per_triangle: dict[str, torch.Tensor]) -> dict:
@@ -110,6 +146,8 @@ def summarise(per_triangle: dict[str, torch.Tensor]) -> dict:
         "nme_p50": float(e.median()), "nme_p90": float(e.quantile(0.9)), "nme_mean": float(e.mean()),
         "nme_mean_edge_or_face": float(e[off].mean()) if bool(off.any()) else None,
         "fraction_edge_or_face": float(off.float().mean()),
+        "optimality_worst5_share": worst_share(o),
+        "optimality_by_reference_minimum": by_minimum_band(o, per_triangle["reference_min"]),
         "n": int(o.numel()),
     }
 
@@ -428,19 +466,33 @@ def _group(name: str) -> str:
     return name
 
 
+def _band_text(label: str, band: dict) -> str:
+    mean = "-" if band["mean"] is None else f"{band['mean']:.1e}"
+    return f"{label}: {band['fraction']:.2f}, {mean}, {band['share']:.2f}"
+
+
 def format_tables(report: dict) -> str:
     """The report's tables as plain text (for the CLI and the closing note)."""
     lines = []
     for split, rows in report["splits"].items():
-        lines.append(f"[{split}] method | opt p50 | opt p90 | opt mean | NME p50 | NME p90 | NME mean | NME edge/face | ms/tri")
+        lines.append(f"[{split}] method | opt p50 | opt p90 | opt mean | worst 5% share | NME p50 | NME p90 | NME mean | "
+                     "NME edge/face | ms/tri")
         for name, s in rows.items():
             t = report["timings"].get(name, {}).get("seconds_per_triangle")
             ef = s["nme_mean_edge_or_face"]
+            worst = s.get("optimality_worst5_share")  # absent from reports written before it was measured
             lines.append(
                 f"{name} | {s['optimality_p50']:.2e} | {s['optimality_p90']:.2e} | {s['optimality_mean']:.2e} | "
+                f"{'-' if worst is None else f'{worst:.2f}'} | "
                 f"{s['nme_p50']:.4f} | {s['nme_p90']:.4f} | {s['nme_mean']:.4f} | {'-' if ef is None else f'{ef:.4f}'} | "
                 f"{'-' if t is None else f'{1e3 * t:.4f}'}"
             )
+    for split, rows in report["splits"].items():
+        for name in AMORTIZED_METHODS:
+            bands = rows.get(name, {}).get("optimality_by_reference_minimum")
+            if bands:
+                lines.append(f"[{split}] {name} by the reference minimum (band: fraction of triangles, mean optimality, "
+                             "share of the total): " + "; ".join(_band_text(label, b) for label, b in bands.items()))
     for split, rows in report.get("table_1", {}).items():
         for method, row in rows.items():
             if row:

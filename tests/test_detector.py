@@ -429,6 +429,32 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
         assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
     assert set(report["table_3"]) == {"seen", "unseen"} and {"full", "full+ls"} <= set(report["table_4"])
     assert "Table I" in format_tables(report)
+    for row in seen.values():  # every method's mean is accounted for by the bands, and the worst 5% hold part of it
+        bands = row["optimality_by_reference_minimum"].values()
+        assert abs(sum(b["fraction"] for b in bands) - 1) < 1e-6
+        assert 0 <= row["optimality_worst5_share"] <= 1
+        if row["optimality_mean"] > 0:
+            assert abs(sum(b["share"] for b in bands) - 1) < 1e-4
+
+
+def test_worst_share_and_bands_against_a_plain_loop():
+    """The bench's account of where a mean comes from, against sorting and counting by hand."""
+    from pipeline.bench_detector import by_minimum_band, worst_share
+
+    gen = torch.Generator().manual_seed(3)
+    gaps = torch.rand(203, generator=gen) ** 4  # heavy-tailed, as optimality is
+    minima = torch.rand(203, generator=gen) * 0.12
+    k = 11  # ceil(5% of 203)
+    ordered = sorted(gaps.tolist(), reverse=True)
+    assert abs(worst_share(gaps) - sum(ordered[:k]) / sum(ordered)) < 1e-6
+    assert worst_share(torch.zeros(5)) == 0.0
+    bands = by_minimum_band(gaps, minima, bands=(0.0, 0.02, 0.05))
+    assert list(bands) == ["0-0.02", "0.02-0.05", ">=0.05"]
+    for (lo, hi), label in zip(((0.0, 0.02), (0.02, 0.05), (0.05, 1.0)), bands):
+        members = [g for g, m in zip(gaps.tolist(), minima.tolist()) if lo <= m < hi]
+        assert bands[label]["fraction"] == len(members) / 203
+        assert abs(bands[label]["mean"] - sum(members) / len(members)) < 1e-6
+        assert abs(bands[label]["share"] - sum(members) / float(gaps.sum())) < 1e-6
 
 
 def test_zoo_bench_detector_runs_the_detector_section(monkeypatch, tmp_path):
