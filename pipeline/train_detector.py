@@ -33,7 +33,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
@@ -128,13 +128,14 @@ def ablation_configs(base: TrainConfig) -> dict[str, TrainConfig]:
     return variants
 
 
-def train_ablations(data: "TrainingData", base: TrainConfig, out_dir, progress: bool = True, log=print) -> dict[str, Path]:
+def train_ablations(data: "TrainingData", base: TrainConfig, out_dir, progress: bool = True, log=print,
+                    device=None) -> dict[str, Path]:
     """Train every :func:`ablation_configs` variant of ``base`` on ``data`` into ``OUT/<variant>``
     (each resumable on its own); -> {variant: directory}, for ``bench_detector --ablations``."""
     out = {}
     for name, config in ablation_configs(base).items():
         log(f"ablation {name}")
-        train(data, config, out_dir=Path(out_dir) / name, progress=progress, log=None if progress else log)
+        train(data, config, out_dir=Path(out_dir) / name, progress=progress, log=None if progress else log, device=device)
         out[name] = Path(out_dir) / name
     return out
 
@@ -228,11 +229,16 @@ class TrainingData:
     def __len__(self) -> int:
         return self.vertices.shape[0]
 
+    def to(self, device) -> "TrainingData":
+        """These data with every tensor on ``device`` (the SDFs follow their inputs' device)."""
+        tensors = {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), torch.Tensor)}
+        return replace(self, **{name: t.to(device) for name, t in tensors.items()})
+
     def with_edge_curvatures(self) -> "TrainingData":
         """These data with each triangle's midpoint curvatures (the L_curv targets), computed once."""
         if self.edge_curvature is not None:
             return self
-        kappa = torch.empty(len(self), 3, dtype=self.vertices.dtype)
+        kappa = torch.empty(len(self), 3, dtype=self.vertices.dtype, device=self.vertices.device)
         for k, sdf in enumerate(self.sdfs):
             rows = (self.shape_index == k).nonzero().squeeze(-1)
             if len(rows):
@@ -272,8 +278,11 @@ def batch_losses(detector: AmortizedDetector, data: TrainingData, rows: torch.Te
 
 
 def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool = True, log=None,
-          init: AmortizedDetector | None = None) -> tuple[AmortizedDetector, dict]:
+          init: AmortizedDetector | None = None, device=None) -> tuple[AmortizedDetector, dict]:
     """Train a detector on ``data``; return (detector, history).
+
+    ``device`` (e.g. "cuda"): where the detector, the data and the SDF queries live; default the data's.
+    The result is on that device; the files written are device-free.
 
     With ``out_dir``, checkpoints go there (atomically) and the final weights and config are
     written as ``detector.safetensors`` and ``detector.json``; an existing checkpoint of the same
@@ -282,7 +291,10 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
     """
     _check_config(config)
     torch.manual_seed(config.seed)
-    detector = AmortizedDetector.from_config(config.detector)
+    fingerprint = data_fingerprint(data) if out_dir is not None else None  # of the data as given, wherever they live
+    if device is not None:
+        data = data.to(device)
+    detector = AmortizedDetector.from_config(config.detector).to(data.vertices.device)
     if init is not None:
         detector.load_state_dict(init.state_dict())
     detector.fit_input_statistics(data.features)
@@ -291,22 +303,22 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
     generator = torch.Generator().manual_seed(config.seed)  # kept in checkpoints for any future random use
     start = 0
     out = Path(out_dir) if out_dir is not None else None
-    fingerprint = data_fingerprint(data) if out is not None else None
     if out is not None:
         start, history = _resume(out, config, detector, optimiser, generator, history, fingerprint)
     if config.lambda_curvature > 0:
         data = data.with_edge_curvatures()
     sdf_losses = config.use_op_loss or config.use_min_loss
     validation_rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(config.seed + 1))[: config.validation_size]
+    validation_rows = validation_rows.to(data.vertices.device)
     t0 = time.perf_counter() - history["seconds"]
     bar = _progress(progress, config.steps, start)
     for step in range(start, config.steps):
-        rows = batch_rows(len(data), config.batch_size, step, config.seed)
+        rows = batch_rows(len(data), config.batch_size, step, config.seed).to(data.vertices.device)
         _set_lr(optimiser, config, step)
         if sdf_losses:
             _, l_op, l_min = batch_losses(detector, data, rows, config.create_graph)
         else:  # the SDF at the predicted points is not needed: skip its (second-order) pass
-            l_op = l_min = torch.zeros(len(rows), dtype=data.vertices.dtype)
+            l_op = l_min = torch.zeros(len(rows), dtype=data.vertices.dtype, device=data.vertices.device)
         loss = total_loss(l_op, l_min, config)
         if config.lambda_curvature > 0:
             loss = loss + config.lambda_curvature * curvature_loss(detector, data, rows)
@@ -336,8 +348,8 @@ def validation_metrics(detector: AmortizedDetector, data: TrainingData, rows: to
         tri, feat, _, vsdf = data.batch(rows)
         bary = detector(tri, feat, vsdf)
     # reuse the loss on a detached prediction: L_op / perimeter is equation (12)
-    l_op = torch.empty(len(rows))
-    l_min = torch.empty(len(rows))
+    l_op = torch.empty(len(rows), device=tri.device)
+    l_min = torch.empty(len(rows), device=tri.device)
     shape = data.shape_index[rows]
     for k in torch.unique(shape).tolist():
         sel = (shape == k).nonzero().squeeze(-1)
@@ -433,7 +445,7 @@ def _resume(out: Path, config: TrainConfig, detector, optimiser, generator, hist
     if not path.is_file():
         return 0, history
     try:
-        state = torch.load(path, weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False)  # a GPU run's checkpoint resumes anywhere
     except Exception as exc:  # an unreadable checkpoint: start over rather than crash
         raise DataError(f"cannot read checkpoint {path} ({exc}); delete it to start training afresh") from exc
     if state.get("config") != json.loads(json.dumps(config.to_dict())) or state.get("data") != data:
@@ -528,7 +540,7 @@ def stage_train_detector(run) -> bool:
 
     def build():
         data = training_data_from_file(run.triangles_file, run.model, run.stems)
-        train(data, config, out_dir=out, progress=run.progress, log=None if run.progress else run.log)
+        train(data, config, out_dir=out, progress=run.progress, log=None if run.progress else run.log, device=run.device)
 
     did = run_stage(stage, build)
     run.detector = load_detector(out)
@@ -542,12 +554,13 @@ def stage_train_detector(run) -> bool:
 
 def train_for_model(model_spec, out_dir, triangles_preset: str = "default", train_preset: str = "default",
                     n_per_shape: int | None = None, steps: int | None = None, detector: dict | None = None,
-                    progress: bool = True, log=print, triangles_file=None, ablations: bool = False) -> Path:
+                    progress: bool = True, log=print, triangles_file=None, ablations: bool = False, device=None) -> Path:
     """Sample (cached) and train a detector for an existing package, outside `zoo fit-category`.
 
     Writes ``OUT/triangles.h5`` (resumable), ``OUT/checkpoint.pt`` and ``OUT/detector.{safetensors,json}``.
     ``triangles_file``: train on this dataset (e.g. the fit-category run's) instead of sampling one.
     ``ablations``: train the Table IV variants into ``OUT/<variant>`` instead (:func:`train_ablations`).
+    ``device``: where sampling and training run (e.g. "cuda"); default the CPU.
     """
     import zoo
 
@@ -560,7 +573,7 @@ def train_for_model(model_spec, out_dir, triangles_preset: str = "default", trai
     triangles = Path(triangles_file) if triangles_file else out / "triangles.h5"
     if not triangles.is_file():
         sample_triangle_dataset([(s, model.shape(s)) for s in model.shapes], triangles, tconfig, progress=progress,
-                                provenance={"model": f"{model.name}@{model.version}"})
+                                provenance={"model": f"{model.name}@{model.version}"}, device=device)
     log(f"triangles: {triangles}")
     overrides = {k: v for k, v in {"steps": steps}.items() if v is not None}
     if detector:
@@ -568,9 +581,9 @@ def train_for_model(model_spec, out_dir, triangles_preset: str = "default", trai
     config = preset(train_preset, **overrides)
     data = training_data_from_file(triangles, model, model.shapes)
     if ablations:
-        train_ablations(data, config, out, progress=progress, log=log)
+        train_ablations(data, config, out, progress=progress, log=log, device=device)
     else:
-        train(data, config, out_dir=out, progress=progress, log=log)
+        train(data, config, out_dir=out, progress=progress, log=log, device=device)
     return out
 
 
@@ -588,13 +601,14 @@ def main(argv=None) -> None:
     parser.add_argument("--triangles", default=None, help="train on this triangle dataset (HDF5) instead of sampling one")
     parser.add_argument("--ablations", action="store_true", help="train the Table IV variants into OUT/<variant>")
     parser.add_argument("--threads", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="torch device for sampling and training: cpu, cuda, cuda:1, ...")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     train_for_model(args.model, args.out, args.triangles_preset, args.preset, args.n_per_shape, args.steps,
                     json.loads(args.detector) if args.detector else None, progress=not args.no_progress,
-                    triangles_file=args.triangles, ablations=args.ablations)
+                    triangles_file=args.triangles, ablations=args.ablations, device=args.device)
 
 
 if __name__ == "__main__":

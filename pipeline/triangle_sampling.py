@@ -55,8 +55,10 @@ def sample_constrained_triangles(
         batch: candidates drawn per round; default 4 n clamped to [1024, 65536] (part of what the
             seed reproduces: the same seed with another ``batch`` or ``n`` draws other triangles).
         max_rounds: rounds before giving up with :class:`DataError`.
-        dtype, device: of the returned tensor. Candidates are drawn on the CPU in float64 (so a seed
-            gives the same triangles everywhere), then cast and filtered in ``dtype``.
+        dtype, device: of the returned tensor, and where the candidates are filtered (the SDF queries:
+            on a GPU, ``device="cuda"``). Candidates are drawn on the CPU in float64, so a seed draws the
+            same candidates everywhere; the filter's rounding may differ between devices, which can flip
+            a candidate that sits on a condition's boundary.
 
     Returns:
         (n, 3, 3) triangles.
@@ -73,13 +75,13 @@ def sample_constrained_triangles(
     for _ in range(int(max_rounds)):
         shapes = _triangle_shapes(batch, edge_lo, edge_hi, gen)  # (B, 3, 3), centroid at 0
         shapes = shapes @ _random_rotations(shapes.shape[0], gen).transpose(1, 2)
-        centres = _points_near_surface(sdf, shapes.shape[0], dist_lo, dist_hi, gen)
-        tri = (shapes + centres.unsqueeze(1)).to(dtype)
+        centres = _points_near_surface(sdf, shapes.shape[0], dist_lo, dist_hi, gen, device)
+        tri = (shapes + centres.unsqueeze(1)).to(device=device, dtype=dtype)
         tri = tri[_meets_conditions(sdf, tri, (edge_lo, edge_hi), (area_lo, area_hi), (dist_lo, dist_hi), min_sdf_iters)]
         kept.append(tri)
         count += tri.shape[0]
         if count >= n:
-            return torch.cat(kept)[:n].to(device=device)
+            return torch.cat(kept)[:n]
     raise DataError(
         f"only {count} of {n} triangles met the conditions after {max_rounds} rounds of {batch}; "
         "the shape may be too thin or the ranges too tight: widen the ranges or raise max_rounds"
@@ -143,18 +145,19 @@ def _random_rotations(count: int, gen: torch.Generator) -> torch.Tensor:
     )
 
 
-def _points_near_surface(sdf, count: int, lo: float, hi: float, gen: torch.Generator) -> torch.Tensor:
+def _points_near_surface(sdf, count: int, lo: float, hi: float, gen: torch.Generator, device=None) -> torch.Tensor:
     """Points (count, 3) at a distance drawn uniformly in [lo, hi] from the surface (exactly so for an exact SDF).
 
     A point x uniform in the bounds (grown by ``hi``) moves along the gradient to the wanted level:
     x - (f(x) - target) g(x). For an exact SDF this lands on the level set; for a fitted one the
-    centroid condition, checked afterwards, catches the misses.
+    centroid condition, checked afterwards, catches the misses. The points are drawn on the CPU
+    (float64) and the SDF is queried on ``device``; the result stays on the CPU.
     """
     lower, upper = (torch.as_tensor(b, dtype=torch.float64) for b in sdf.bounds)
     lower, upper = lower - hi, upper + hi
     x = lower + (upper - lower) * torch.rand(count, 3, generator=gen, dtype=torch.float64)
     target = lo + (hi - lo) * torch.rand(count, generator=gen, dtype=torch.float64)
-    f, g = sdf.value_and_grad(x)
+    f, g = sdf.value_and_grad(x if device is None else x.to(device))
     f, g = torch.as_tensor(f).to(x), torch.as_tensor(g).to(x)
     g = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return x - (f - target).unsqueeze(-1) * g

@@ -98,7 +98,7 @@ def label_triangles(sdf, triangles: torch.Tensor, config: TriangleConfig) -> dic
         with torch.no_grad():
             fmin.append(torch.as_tensor(sdf(bary_to_points(part, b))).float())
         bary.append(b.float())
-    return {"bary": torch.cat(bary).numpy(), "min_sdf": torch.cat(fmin).numpy()}
+    return {"bary": torch.cat(bary).cpu().numpy(), "min_sdf": torch.cat(fmin).cpu().numpy()}
 
 
 def reference_labels(sdf, triangles: torch.Tensor, config: TriangleConfig) -> dict[str, np.ndarray]:
@@ -112,14 +112,15 @@ def reference_labels(sdf, triangles: torch.Tensor, config: TriangleConfig) -> di
     b = reference(sdf, tri, resolution=config.reference_resolution)
     with torch.no_grad():
         f = torch.as_tensor(sdf(bary_to_points(tri, b)))
-    return {"rows": np.arange(k, dtype=np.int64), "bary": b.float().numpy(), "min_sdf": f.float().numpy()}
+    return {"rows": np.arange(k, dtype=np.int64), "bary": b.float().cpu().numpy(), "min_sdf": f.float().cpu().numpy()}
 
 
-def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None) -> dict:
+def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, device=None) -> dict:
     """Sample and label one shape's triangles; -> dict of numpy arrays (see the module's layout).
 
     ``shape`` has ``normalised`` (its SDF in the normalised frame) and ``features(points (N, 3))``.
     ``sampler(sdf, n, seed=...) -> (M, 3, 3)`` defaults to the paper's four-condition sampler.
+    ``device``: where the SDF is queried (sampling, features, labels); default the CPU.
     """
     sdf = shape.normalised
     if sampler is None:
@@ -127,8 +128,9 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None) -> 
 
         from pipeline.triangle_sampling import sample_constrained_triangles
 
-        sampler = partial(sample_constrained_triangles, batch=config.sampler_batch)
+        sampler = partial(sample_constrained_triangles, batch=config.sampler_batch, device=device)
     tri = torch.as_tensor(sampler(sdf, config.n_per_shape, seed=shape_seed(config.seed, index))).float()
+    tri = tri if device is None else tri.to(device)
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
         raise DataError(f"the triangle sampler returned shape {tuple(tri.shape)}; expected (M, 3, 3)")
     with torch.no_grad():
@@ -137,9 +139,9 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None) -> 
     labels = label_triangles(sdf, tri, config)
     ref = reference_labels(sdf, tri, config)
     return {
-        "vertices": tri.numpy(),
-        "features": feat.reshape(tri.shape[0], 3, -1).numpy(),
-        "vertex_sdf": vsdf.reshape(tri.shape[0], 3).numpy(),
+        "vertices": tri.cpu().numpy(),
+        "features": feat.reshape(tri.shape[0], 3, -1).cpu().numpy(),
+        "vertex_sdf": vsdf.reshape(tri.shape[0], 3).cpu().numpy(),
         "bary": labels["bary"],
         "min_sdf": labels["min_sdf"],
         "shape_index": np.full(tri.shape[0], index, dtype=np.int32),
@@ -151,8 +153,11 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None) -> 
 
 
 def sample_triangle_dataset(shapes, out_path, config: TriangleConfig = TriangleConfig(), sampler=None,
-                            progress: bool = True, provenance: dict | None = None) -> Path:
+                            progress: bool = True, provenance: dict | None = None, device=None) -> Path:
     """Write the labelled triangle dataset of ``shapes`` [(name, shape), ...] to ``out_path`` (HDF5).
+
+    ``device`` (e.g. "cuda") is where the SDF queries run; the file is the same wherever they ran, up to
+    rounding (see :func:`pipeline.triangle_sampling.sample_constrained_triangles`).
 
     Resumes from per-shape chunk files in ``<out_path>.chunks/`` written by an interrupted run
     with the same config, shape names and ``provenance`` (which should name the fit the shapes come
@@ -171,7 +176,7 @@ def sample_triangle_dataset(shapes, out_path, config: TriangleConfig = TriangleC
         for index, (name, shape) in enumerate(shapes):
             path = chunk_dir / f"shape_{index:04d}.h5"
             if not _chunk_is_current(h5py, path, tag):
-                _write_chunk(h5py, path, shape_triangles(shape, index, config, sampler), tag)
+                _write_chunk(h5py, path, shape_triangles(shape, index, config, sampler, device), tag)
             chunks.append(path)
             advance(name)
     meta = {
@@ -361,7 +366,7 @@ def stage_sample_triangles(run) -> bool:
     def build():
         shapes = [(s, run.model.shape(s)) for s in run.stems]
         # the fitted weights' sha256 ties the per-shape chunks a killed run leaves to the fit they were labelled on
-        sample_triangle_dataset(shapes, out, config, progress=run.progress,
+        sample_triangle_dataset(shapes, out, config, progress=run.progress, device=run.device,
                                 provenance={"category": run.category.name, "fit": str(run.fit_file),
                                             "fit_weights_sha256": weights_sha256(run.model.sdf)})
 

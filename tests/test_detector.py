@@ -345,6 +345,37 @@ def test_training_resumes_from_its_checkpoint(torus_data, tmp_path, monkeypatch)
     assert (tmp_path / "detector.safetensors").is_file()
 
 
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_training_on_a_device_matches_the_cpu_and_resumes_on_the_cpu(torus_data, tmp_path, monkeypatch, device):
+    import pipeline.train_detector as td
+
+    shape, tri, feat = torus_data
+    data = TrainingData(tri[:512], feat[:512], torch.zeros(512, dtype=torch.long), [shape.normalised])
+    config = TrainConfig(steps=6, batch_size=128, checkpoint_every=3, validate_every=6, validation_size=64)
+    on_cpu, _ = train(data, config, progress=False)
+    on_device, _ = train(data, config, progress=False, device=device)
+    assert all(p.device.type == torch.device(device).type for p in on_device.parameters())
+    original, calls = td.batch_losses, {"n": 0}
+
+    def crash_at_step_five(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(td, "batch_losses", crash_at_step_five)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, config, out_dir=tmp_path, progress=False, device=device)
+    monkeypatch.setattr(td, "batch_losses", original)
+    resumed, history = train(data, config, out_dir=tmp_path, progress=False)  # the device's checkpoint, on the CPU
+    assert history["step"] == list(range(1, 7))
+    for a, b, c in zip(on_cpu.state_dict().values(), on_device.state_dict().values(), resumed.state_dict().values()):
+        assert torch.allclose(a, b.cpu(), atol=1e-5) and torch.allclose(a, c, atol=1e-5)
+
+
 def test_detect_works_in_the_source_frame(torus_data, trained):
     shape, tri, feat = torus_data
     rot = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64))[0]

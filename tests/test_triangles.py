@@ -128,3 +128,20 @@ def test_relabelling_for_the_same_fit_reproduces_the_labels(dataset, tmp_path):
     assert b["provenance"]["relabelled_from"] == str(dataset)
     with pytest.raises(DataError, match="same shapes"):
         relabel_triangle_dataset(dataset, shapes()[::-1], tmp_path / "bad.h5", CONFIG, progress=False)
+
+
+# Where the SDF queries run: the CPU always, a GPU where the machine has one (the device tool runs it there).
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_device_gives_the_arrays_of_the_cpu(dataset, tmp_path, device):
+    path = tmp_path / "on_device.h5"
+    sample_triangle_dataset(shapes(), path, CONFIG, progress=False, device=device,
+                            sampler=lambda sdf, n, seed=0: sample_constrained_triangles(sdf, n, seed=seed, batch=2048, device=device))
+    with h5py.File(dataset, "r") as a, h5py.File(path, "r") as b:
+        for k in ARRAYS:
+            if device == "cpu":
+                assert np.array_equal(a[k][...], b[k][...]), k
+            else:  # another device's rounding
+                assert np.allclose(a[k][...], b[k][...], atol=1e-5), k
