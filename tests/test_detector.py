@@ -319,43 +319,18 @@ def test_short_training_beats_the_centroid_and_the_best_vertex(torus_data, train
     assert ours < optimality(sdf, test_tri, best_vertex).mean()
 
 
-def test_training_resumes_from_its_checkpoint(torus_data, tmp_path, monkeypatch):
+# Where training runs: the CPU always, a GPU where the machine has one.
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_training_resumes_from_its_checkpoint_on_the_cpu(torus_data, tmp_path, monkeypatch, device):
     import pipeline.train_detector as td
 
     shape, tri, feat = torus_data
     data = TrainingData(tri[:512], feat[:512], torch.zeros(512, dtype=torch.long), [shape.normalised])
     config = TrainConfig(steps=6, batch_size=128, checkpoint_every=3, validate_every=6, validation_size=64)
     straight, _ = train(data, config, progress=False)
-    original, calls = td.batch_losses, {"n": 0}
-
-    def crash_at_step_five(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 5:
-            raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(td, "batch_losses", crash_at_step_five)
-    with pytest.raises(KeyboardInterrupt):
-        train(data, config, out_dir=tmp_path, progress=False)
-    monkeypatch.setattr(td, "batch_losses", original)
-    resumed, history = train(data, config, out_dir=tmp_path, progress=False)
-    assert history["step"] == list(range(1, 7))
-    for a, b in zip(straight.state_dict().values(), resumed.state_dict().values()):
-        assert torch.allclose(a, b, atol=1e-6)
-    assert (tmp_path / "detector.safetensors").is_file()
-
-
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-
-
-@pytest.mark.parametrize("device", DEVICES)
-def test_training_on_a_device_matches_the_cpu_and_resumes_on_the_cpu(torus_data, tmp_path, monkeypatch, device):
-    import pipeline.train_detector as td
-
-    shape, tri, feat = torus_data
-    data = TrainingData(tri[:512], feat[:512], torch.zeros(512, dtype=torch.long), [shape.normalised])
-    config = TrainConfig(steps=6, batch_size=128, checkpoint_every=3, validate_every=6, validation_size=64)
-    on_cpu, _ = train(data, config, progress=False)
     on_device, _ = train(data, config, progress=False, device=device)
     assert all(p.device.type == torch.device(device).type for p in on_device.parameters())
     original, calls = td.batch_losses, {"n": 0}
@@ -372,8 +347,9 @@ def test_training_on_a_device_matches_the_cpu_and_resumes_on_the_cpu(torus_data,
     monkeypatch.setattr(td, "batch_losses", original)
     resumed, history = train(data, config, out_dir=tmp_path, progress=False)  # the device's checkpoint, on the CPU
     assert history["step"] == list(range(1, 7))
-    for a, b, c in zip(on_cpu.state_dict().values(), on_device.state_dict().values(), resumed.state_dict().values()):
-        assert torch.allclose(a, b.cpu(), atol=1e-5) and torch.allclose(a, c, atol=1e-5)
+    for a, b, c in zip(straight.state_dict().values(), on_device.state_dict().values(), resumed.state_dict().values()):
+        assert torch.allclose(a, b.cpu(), atol=1e-5) and torch.allclose(a, c, atol=1e-6)
+    assert (tmp_path / "detector.safetensors").is_file()
 
 
 def test_detect_works_in_the_source_frame(torus_data, trained):
