@@ -436,6 +436,8 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
         assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
     assert set(report["table_3"]) == {"seen", "unseen"} and {"full", "full+ls"} <= set(report["table_4"])
     assert "Table I" in format_tables(report)
+    # the reference moved off its minima loses optimality, more the farther it is moved
+    assert seen["reference moved 0.1"]["optimality_mean"] > seen["reference moved 0.003"]["optimality_mean"] > 0
     for row in seen.values():  # every method's mean is accounted for by the bands, and the worst 5% hold part of it
         bands = row["optimality_by_reference_minimum"].values()
         assert abs(sum(b["fraction"] for b in bands) - 1) < 1e-6
@@ -488,3 +490,25 @@ def test_zoo_bench_detector_runs_the_detector_section(monkeypatch, tmp_path):
     assert result.exit_code == 0, result.output
     assert calls == {"model": "mugs@1.3.0", "out": tmp_path, "n": 7, "threads": 1, "max_shapes": 2, "unseen": "mugs"}
     assert "Table IV full" in result.output
+
+
+def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_triangle():
+    from pipeline.bench_detector import moved_reference
+    from zoo.geometry import edge_lengths
+
+    g = torch.Generator().manual_seed(0)
+    tri = torch.rand(300, 3, 3, generator=g, dtype=torch.float64)
+    kinds = torch.arange(300) % 3  # at a vertex, on an edge, inside
+    ref = torch.where((kinds == 0)[:, None], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+                      torch.where((kinds == 1)[:, None], torch.tensor([0.0, 0.45, 0.55], dtype=torch.float64),
+                                  torch.tensor([0.3, 0.3, 0.4], dtype=torch.float64)))
+    fraction = 0.02
+    moved = moved_reference(tri, ref, fraction, torch.Generator().manual_seed(1))
+    assert (moved >= 0).all() and torch.allclose(moved.sum(-1), torch.ones(300, dtype=torch.float64))
+    assert torch.equal(moved[kinds == 0], ref[kinds == 0])  # a vertex minimum stays
+    assert (moved[kinds == 1, 0] == 0).all()  # an edge minimum stays on its edge
+    step = torch.einsum("mv,mvc->mc", moved - ref, tri).norm(dim=-1)
+    inside = (kinds > 0) & (moved.amin(-1) > 0) | (kinds == 1) & (moved[:, 1:].amin(-1) > 0)
+    want = fraction * edge_lengths(tri).mean(-1)
+    assert inside.sum() > 150 and torch.allclose(step[inside], want[inside], rtol=1e-9)  # unclipped: exactly that far
+    assert (step[kinds > 0] <= want[kinds > 0] + 1e-12).all()  # clipped: no farther
