@@ -105,3 +105,15 @@ def test_stress_report_is_written(tmp_path, monkeypatch):
     report = run_stress(tmp_path / "s.json")
     assert report["passed"] == 2 and report["failed"] == 0
     assert json.loads((tmp_path / "s.json").read_text())["cases"][0]["expected"]
+
+
+def test_demo_error_against_run_time_on_the_bundled_model():
+    from pipeline.demo import demo_scene, error_vs_runtime
+
+    scene, _ = demo_scene()  # the bundled mugs model on a procedural rack: no ../shared needed
+    rows = {r["method"]: r for r in error_vs_runtime(scene, None, iters=(1, 10), repeats=1)}
+    assert set(rows) == {"amortized", "fw-1", "fw-10"}
+    assert all(r["ms_per_triangle"] > 0 for r in rows.values())
+    assert rows["fw-10"]["optimality_mean"] < rows["fw-1"]["optimality_mean"]
+    # the detector's polished answer beats ten Frank-Wolfe iterations on the hanging mug's candidates
+    assert rows["amortized"]["optimality_mean"] < rows["fw-10"]["optimality_mean"]
