@@ -8,7 +8,6 @@ checkout before the first training run), the demo says so and hangs an analytic 
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
