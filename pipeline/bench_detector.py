@@ -376,6 +376,31 @@ def table_one(split: dict, timings: dict, fw_limit: int = 50, method: str = "amo
     }
 
 
+# The manifest's names of the two amortized rows (a release records both).
+RELEASE_NAMES = {"amortized": "one_pass", POLISHED: "polished"}
+
+
+def release_metrics(report: dict) -> dict:
+    """The detector's headline numbers from a bench report, flat, as a release's manifest stores them
+    (``zoo package --metrics``): per split and amortized row, mean optimality and NME, and the FW
+    iterations to the same mean with the speed-up over them (Table I); per row, ms per triangle."""
+    out = {}
+    for method, label in RELEASE_NAMES.items():
+        if method in report["timings"]:
+            out[f"detector_{label}_ms_per_triangle"] = 1e3 * report["timings"][method]["seconds_per_triangle"]
+        for split, rows in report["splits"].items():
+            if method not in rows:
+                continue
+            key = f"detector_{split}_{label}"
+            out[f"{key}_optimality_mean"] = rows[method]["optimality_mean"]
+            out[f"{key}_nme_mean"] = rows[method]["nme_mean"]
+            table = report.get("table_1", {}).get(split, {}).get(method)
+            if table:
+                out[f"{key}_fw_iterations_same_optimality"] = table["fw_iterations"]
+                out[f"{key}_speedup_vs_fw_same_optimality"] = table["speedup"]
+    return out
+
+
 def ablation_table(variants: dict, shapes, triangles, config: BenchConfig) -> dict:
     """Table IV: {variant: optimality and NME summary} for detectors trained without a component;
     each variant twice: its one-pass answer (``name``) and polished by the line search (``name+ls``)."""
@@ -591,6 +616,8 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true", help="the small QUICK configuration")
     parser.add_argument("--voxels", default=None, help="comma-separated voxel resolutions (default 64,128,256)")
     parser.add_argument("--threads", type=int, default=0)
+    parser.add_argument("--metrics-out", default=None, help="also write the detector's headline numbers, flat, to this "
+                        "JSON file: what `zoo package --metrics` records in a release's manifest")
     args = parser.parse_args(argv)
     import dataclasses
 
@@ -624,8 +651,12 @@ def main(argv=None) -> None:
         return
     path = run_detector_benchmark(detector, seen, unseen, args.out, config, ablations=ablations or None,
                                   label=f"{model.name}@{model.version}")
-    print(format_tables(json.loads(path.read_text())))
+    report = json.loads(path.read_text())
+    print(format_tables(report))
     print(f"written {path} and {path.with_name(PNG_NAME)}")
+    if args.metrics_out:
+        atomic_write_text(Path(args.metrics_out), json.dumps(release_metrics(report), indent=1) + "\n")
+        print(f"written {args.metrics_out}")
 
 
 if __name__ == "__main__":

@@ -436,6 +436,15 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
         assert t1["speedup"] > 0 and t1["fw_iterations"] in (1, 3, 50)
     assert set(report["table_3"]) == {"seen", "unseen"} and {"full", "full+ls"} <= set(report["table_4"])
     assert "Table I" in format_tables(report)
+    # what a release's manifest records is the report's own numbers, under the manifest's names
+    from pipeline.bench_detector import release_metrics
+
+    flat = release_metrics(report)
+    assert flat["detector_seen_polished_optimality_mean"] == seen["amortized+ls"]["optimality_mean"]
+    assert flat["detector_unseen_one_pass_nme_mean"] == report["splits"]["unseen"]["amortized"]["nme_mean"]
+    assert flat["detector_seen_one_pass_fw_iterations_same_optimality"] == report["table_1"]["seen"]["amortized"]["fw_iterations"]
+    assert flat["detector_polished_ms_per_triangle"] == 1e3 * report["timings"]["amortized+ls"]["seconds_per_triangle"]
+    assert len(flat) == 2 + 2 * 2 * 4
     # the reference moved off its minima loses optimality, more the farther it is moved
     assert seen["reference moved 0.1"]["optimality_mean"] > seen["reference moved 0.003"]["optimality_mean"] > 0
     for row in seen.values():  # every method's mean is accounted for by the bands, and the worst 5% hold part of it
