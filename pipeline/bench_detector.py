@@ -96,13 +96,19 @@ def bench_triangles(shapes, config: BenchConfig, sampler=None) -> list[torch.Ten
 # --------------------------------------------------------------------------- metrics
 
 
-def quality(sdf, triangles: torch.Tensor, bary: torch.Tensor, ref_bary: torch.Tensor) -> dict[str, torch.Tensor]:
+def reference_minimum(sdf, triangles: torch.Tensor, ref_bary: torch.Tensor) -> torch.Tensor:
+    """The SDF (M,) at the reference minima ``ref_bary`` (M, 3) of ``triangles`` (M, 3, 3): how close each comes to the
+    surface. Taken once per split and shape, shared by every method's :func:`quality`."""
+    with torch.no_grad():
+        return torch.as_tensor(sdf(bary_to_points(triangles, ref_bary))).reshape(-1).float()
+
+
+def quality(sdf, triangles: torch.Tensor, bary: torch.Tensor, ref_bary: torch.Tensor,
+            ref_min: torch.Tensor) -> dict[str, torch.Tensor]:
     """Per triangle: optimality (M,), NME (M,), whether the reference minimum is off the vertices (M,) bool,
-    and the SDF at the reference minimum (M,): how close the triangle comes to the surface."""
+    and ``ref_min`` (M,), the SDF at the reference minimum (:func:`reference_minimum`)."""
     from zoo.solvers import EDGE, minimum_location, nme, optimality
 
-    with torch.no_grad():
-        ref_min = torch.as_tensor(sdf(bary_to_points(triangles, ref_bary))).reshape(-1).float()
     return {
         "optimality": optimality(sdf, triangles, bary).float(),
         "nme": nme(bary.double(), ref_bary.double(), triangles.double()).float(),
@@ -290,20 +296,21 @@ def run_split(detector, shapes, triangles, config: BenchConfig, voxels: dict | N
         shape_n = view.normalised
         ref = reference(shape_n, tri.double(), resolution=config.reference_resolution).float()
         # the yardstick's own KKT gap: what no solver can beat on this SDF (0 for a C1 one)
-        per_method.setdefault("reference", []).append(quality(shape_n, tri, ref, ref))
+        ref_min = reference_minimum(shape_n, tri, ref)
+        per_method.setdefault("reference", []).append(quality(shape_n, tri, ref, ref, ref_min))
         generator = torch.Generator().manual_seed(config.seed + i)
         for fraction in TOLERANCES:
             moved = moved_reference(tri, ref, fraction, generator)
-            per_method.setdefault(MOVED.format(fraction), []).append(quality(shape_n, tri, moved, ref))
+            per_method.setdefault(MOVED.format(fraction), []).append(quality(shape_n, tri, moved, ref, ref_min))
         for name, solve in methods.items():
-            per_method[name].append(quality(shape_n, tri, solve(view, shape_n, tri), ref))
+            per_method[name].append(quality(shape_n, tri, solve(view, shape_n, tri), ref, ref_min))
             if progress:
                 progress()
         for r, grids in (voxels or {}).items():
             if i >= len(grids):
                 continue
             bary = frank_wolfe(grids[i], tri, iters=config.voxel_fw_iters)
-            per_method.setdefault(f"voxel{r}+fw{config.voxel_fw_iters}", []).append(quality(shape_n, tri, bary, ref))
+            per_method.setdefault(f"voxel{r}+fw{config.voxel_fw_iters}", []).append(quality(shape_n, tri, bary, ref, ref_min))
     return {name: summarise(_concat(parts)) for name, parts in per_method.items()}
 
 
@@ -407,11 +414,12 @@ def ablation_table(variants: dict, shapes, triangles, config: BenchConfig) -> di
     from zoo.solvers import reference
 
     refs = [reference(s.normalised, t.double(), resolution=config.reference_resolution).float() for s, t in zip(shapes, triangles)]
+    ref_mins = [reference_minimum(s.normalised, t, r) for s, t, r in zip(shapes, triangles, refs)]
     out = {}
     for name, det in variants.items():
         for suffix, polish in (("", False), ("+ls", True)):  # the forward pass alone, then as detect() runs it
-            parts = [quality(s.normalised, t, detect(det, NormalisedView(s), t, polish=polish), r)
-                     for s, t, r in zip(shapes, triangles, refs)]
+            parts = [quality(s.normalised, t, detect(det, NormalisedView(s), t, polish=polish), r, rm)
+                     for s, t, r, rm in zip(shapes, triangles, refs, ref_mins)]
             out[name + suffix] = summarise(_concat(parts))
     return out
 
