@@ -157,7 +157,7 @@ def _points_near_surface(sdf, count: int, lo: float, hi: float, gen: torch.Gener
     lower, upper = lower - hi, upper + hi
     x = lower + (upper - lower) * torch.rand(count, 3, generator=gen, dtype=torch.float64)
     target = lo + (hi - lo) * torch.rand(count, generator=gen, dtype=torch.float64)
-    f, g = sdf.value_and_grad(x if device is None else x.to(device))
+    f, g = sdf.value_and_grad(x.to(device))  # device None: stays where it is
     f, g = torch.as_tensor(f).to(x), torch.as_tensor(g).to(x)
     g = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return x - (f - target).unsqueeze(-1) * g

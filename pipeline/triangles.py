@@ -130,7 +130,7 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, dev
 
         sampler = partial(sample_constrained_triangles, batch=config.sampler_batch, device=device)
     tri = torch.as_tensor(sampler(sdf, config.n_per_shape, seed=shape_seed(config.seed, index))).float()
-    tri = tri if device is None else tri.to(device)
+    tri = tri.to(device)  # device None: stays where the sampler put it
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
         raise DataError(f"the triangle sampler returned shape {tuple(tri.shape)}; expected (M, 3, 3)")
     with torch.no_grad():
