@@ -7,10 +7,14 @@ Methods, each on the same triangles, timed in the same run:
 * ``fw{k}``: NeuralSDF + Frank-Wolfe from the centroid (MuJoCo's rule), k iterations;
 * ``pgd``: projected gradient (PhysX's rule);
 * ``vertex+ls``: the polish from the best vertex (what the line search does without the network);
+  ``vertex+ls1``: the same with one line-search step;
 * ``midpoint-quadratic``: the curvature head's model with exact curvatures, from six SDF values
   per triangle (vertices and edge midpoints): the best any curvature head's forward pass can do;
 * ``voxel{r}+fw{k}``: the NeuralSDF sampled on an r^3 grid (zoo.VoxelSDF), then Frank-Wolfe
   on the grid; its answer is judged on the NeuralSDF;
+* ``interpolant-p{k}`` (no timing): the minimum of the degree-k polynomial that matches the SDF at the
+  triangle's (k+1)(k+2)/2 Lagrange nodes (:func:`interpolant_minimum`): the ceiling of any forward pass
+  that models the SDF over the triangle as a degree-k polynomial, however well it predicts one;
 * ``reference moved {eps}`` (no timing): the global reference with each off-vertex minimum moved by
   eps x the triangle's mean edge length (:func:`moved_reference`): how precisely an answer must place
   those minima to reach a given mean optimality, whatever method it comes from.
@@ -52,8 +56,13 @@ AMORTIZED_METHODS = ("amortized", POLISHED)
 BEST_VERTEX = "best-vertex"
 # the same polish from the best vertex: what the polish does without the network
 VERTEX_POLISHED = "vertex+ls"
+# ... with one line-search step instead of POLISH_ROUNDS
+VERTEX_POLISHED_ONCE = "vertex+ls1"
 # the curvature head's model with exact curvatures (three more values per triangle): what no curvature head can beat
 MIDPOINT_QUADRATIC = "midpoint-quadratic"
+# exact polynomial models of higher degree (10 and 15 values per triangle): how far a richer head's model class could go
+INTERPOLANT = "interpolant-p{}"
+INTERPOLANT_DEGREES = (3, 4)
 PNG_NAME = "bench_detector.png"
 
 
@@ -70,6 +79,7 @@ class BenchConfig:
     repeats: int = 3
     max_timed_fw_iters: int = 30  # longer FW runs are timed as (per-iteration time x k), marked so
     reference_resolution: int = 32
+    interpolant_degrees: tuple[int, ...] = INTERPOLANT_DEGREES  # the interpolant-p{k} ceiling rows (no timing)
     threads: int | None = None
 
     def to_dict(self) -> dict:
@@ -221,6 +231,7 @@ def method_table(detector, config: BenchConfig) -> dict:
     methods["pgd"] = lambda shape, sdf, tri: projected_gradient(sdf, tri)
     methods[BEST_VERTEX] = lambda shape, sdf, tri: best_vertex(sdf, tri)
     methods[VERTEX_POLISHED] = lambda shape, sdf, tri: polished_best_vertex(sdf, tri)
+    methods[VERTEX_POLISHED_ONCE] = lambda shape, sdf, tri: polished_best_vertex(sdf, tri, rounds=1)
     methods[MIDPOINT_QUADRATIC] = lambda shape, sdf, tri: midpoint_quadratic(sdf, tri)
     return methods
 
@@ -243,18 +254,54 @@ def best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.one_hot(vertex_values(sdf, triangles).argmin(dim=-1), 3).to(triangles)
 
 
-def polished_best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
+def polished_best_vertex(sdf, triangles: torch.Tensor, rounds: int | None = None) -> torch.Tensor:
     """The baseline that isolates the network's part in ``amortized+ls``: the same polish (the vertex test,
-    then ``POLISH_ROUNDS`` line-search steps) from the lowest vertex instead of the network's answer."""
+    then ``rounds`` line-search steps, default ``POLISH_ROUNDS``) from the lowest vertex instead of the network's answer."""
     from zoo.detect import POLISH_LINE_STEPS, POLISH_ROUNDS
     from zoo.solvers import line_search_steps, vertex_values
+
+    rounds = POLISH_ROUNDS if rounds is None else rounds
 
     values = vertex_values(sdf, triangles)
     vertex = torch.nn.functional.one_hot(values.argmin(dim=-1), 3).to(triangles)
     f, g = sdf.value_and_grad(bary_to_points(triangles, vertex))
     f, g = torch.as_tensor(f).reshape(-1).to(triangles), torch.as_tensor(g).to(triangles)
-    return line_search_steps(sdf, triangles, vertex, values, POLISH_ROUNDS, line_steps=POLISH_LINE_STEPS, start=(f, g),
+    return line_search_steps(sdf, triangles, vertex, values, rounds, line_steps=POLISH_LINE_STEPS, start=(f, g),
                              fallback=(vertex, f, g))
+
+
+def lagrange_nodes(degree: int, dtype=torch.float64) -> torch.Tensor:
+    """The (k+1)(k+2)/2 points of the degree-k lattice on the triangle, as barycentrics (N, 3): (k-i-j, i, j) / k."""
+    ij = torch.tensor([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)], dtype=dtype)
+    return torch.cat([degree - ij.sum(-1, keepdim=True), ij], dim=-1) / degree
+
+
+def _monomials(bary: torch.Tensor, degree: int) -> torch.Tensor:
+    """The monomials b1^a b2^c (a + c <= degree) at barycentrics (..., 3) -> (..., (k+1)(k+2)/2)."""
+    u, v = bary[..., 1], bary[..., 2]
+    return torch.stack([u**a * v**c for a in range(degree + 1) for c in range(degree + 1 - a)], dim=-1)
+
+
+def interpolant_minimum(sdf, triangles: torch.Tensor, degree: int, grid_level: int = 240, chunk: int = 64) -> torch.Tensor:
+    """The minimum of the degree-``degree`` polynomial that equals ``sdf`` at each triangle's Lagrange nodes, found on
+    the barycentric grid of ``grid_level``: triangles (M, 3, 3) -> bary (M, 3), in their dtype.
+
+    The ceiling of a forward pass that models the SDF over the triangle by such a polynomial: it is given the exact
+    values a network would have to predict. Grid spacing 1/``grid_level`` of the triangle (0.4% at the default: an
+    order below the placement the bench's tolerance rows show matters).
+    """
+    nodes = lagrange_nodes(degree)
+    to_coefficients = torch.linalg.inv(_monomials(nodes, degree))  # (N, N): node values -> monomial coefficients
+    grid = lagrange_nodes(grid_level)  # (Q, 3)
+    at_grid = _monomials(grid, degree)  # (Q, N)
+    out = []
+    with torch.no_grad():
+        for tri in triangles.double().split(chunk):
+            points = torch.einsum("nv,mvc->mnc", nodes, tri).reshape(-1, 3)
+            values = torch.as_tensor(sdf(points)).double().reshape(tri.shape[0], -1)  # (m, N)
+            model = (values @ to_coefficients.T) @ at_grid.T  # (m, Q)
+            out.append(grid[model.argmin(dim=-1)])
+    return torch.cat(out).to(triangles.dtype)
 
 
 # Placement tolerance rows: the reference minimum moved by these fractions of the triangle's mean edge length
@@ -302,6 +349,9 @@ def run_split(detector, shapes, triangles, config: BenchConfig, voxels: dict | N
         for fraction in TOLERANCES:
             moved = moved_reference(tri, ref, fraction, generator)
             per_method.setdefault(MOVED.format(fraction), []).append(quality(shape_n, tri, moved, ref, ref_min))
+        for degree in config.interpolant_degrees:
+            bary = interpolant_minimum(shape_n, tri, degree)
+            per_method.setdefault(INTERPOLANT.format(degree), []).append(quality(shape_n, tri, bary, ref, ref_min))
         for name, solve in methods.items():
             per_method[name].append(quality(shape_n, tri, solve(view, shape_n, tri), ref, ref_min))
             if progress:
@@ -498,6 +548,7 @@ def pareto_plot(report: dict, path: Path) -> None:
     groups = {"fw": ("NeuralSDF+FW", "tab:blue"), "amortized+fw": ("amortized+FW refine", "tab:orange"),
               "amortized": ("amortized, one pass (ours)", "tab:red"), POLISHED: ("amortized + line search (ours)", "darkred"),
               BEST_VERTEX: ("best vertex", "silver"), VERTEX_POLISHED: ("best vertex + line search", "tab:gray"),
+              VERTEX_POLISHED_ONCE: ("best vertex + one line-search step", "lightslategray"),
               "pgd": ("projected gradient", "tab:green"),
               MIDPOINT_QUADRATIC: ("quadratic through 6 exact values", "tab:brown"),
               "voxel": ("VoxelSDF+FW", "tab:purple")}
@@ -523,7 +574,7 @@ def pareto_plot(report: dict, path: Path) -> None:
 
 
 def _group(name: str) -> str:
-    if name in (POLISHED, BEST_VERTEX, VERTEX_POLISHED, MIDPOINT_QUADRATIC):
+    if name in (POLISHED, BEST_VERTEX, VERTEX_POLISHED, VERTEX_POLISHED_ONCE, MIDPOINT_QUADRATIC):
         return name
     if name.startswith("amortized+"):
         return "amortized+fw"

@@ -424,8 +424,9 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
     report = json.loads(path.read_text())
     assert (tmp_path / "bench_detector.png").stat().st_size > 1000
     seen = report["splits"]["seen"]
-    assert {"amortized", "amortized+ls", "best-vertex", "vertex+ls", "amortized+fw1", "fw1", "fw3", "fw50", "pgd",
-            "voxel16+fw50"} <= set(seen)
+    assert {"amortized", "amortized+ls", "best-vertex", "vertex+ls", "vertex+ls1", "amortized+fw1", "fw1", "fw3", "fw50", "pgd",
+            "voxel16+fw50", "interpolant-p3", "interpolant-p4"} <= set(seen)
+    assert "interpolant-p3" not in report["timings"] and "vertex+ls1" in report["timings"]
     # the lowest vertex is a KKT point wherever the reference minimum is at a vertex: exactly 0 there
     assert seen["best-vertex"]["optimality_p50"] == 0
     assert seen["best-vertex"]["optimality_mean"] > seen["vertex+ls"]["optimality_mean"]  # the polish moves off it
@@ -521,3 +522,24 @@ def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_tria
     want = fraction * edge_lengths(tri).mean(-1)
     assert inside.sum() > 150 and torch.allclose(step[inside], want[inside], rtol=1e-9)  # unclipped: exactly that far
     assert (step[kinds > 0] <= want[kinds > 0] + 1e-12).all()  # clipped: no farther
+
+
+def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_polynomial():
+    from pipeline.bench_detector import interpolant_minimum, lagrange_nodes
+
+    a = torch.tensor([0.6, -0.3, 0.2], dtype=torch.float64)
+
+    def cubic(p):  # a cubic in space, so a cubic on every triangle: its degree-3 interpolant is itself
+        p = torch.as_tensor(p, dtype=torch.float64)
+        return (p @ a) ** 3 + 2 * ((p - 0.1) ** 2).sum(-1) - 0.4 * p[:, 2]
+
+    g = torch.Generator().manual_seed(3)
+    tri = 0.1 * torch.randn(40, 3, 3, generator=g, dtype=torch.float64) + 0.2 * torch.randn(40, 1, 3, generator=g, dtype=torch.float64)
+    level = 90
+    grid = lagrange_nodes(level)  # the brute force: the true function on the same grid
+    brute = grid[cubic(torch.einsum("qv,mvc->mqc", grid, tri).reshape(-1, 3)).reshape(40, -1).argmin(-1)]
+    torch.testing.assert_close(interpolant_minimum(cubic, tri, 3, grid_level=level), brute, atol=1e-12, rtol=0)
+    torch.testing.assert_close(interpolant_minimum(cubic, tri, 4, grid_level=level), brute, atol=1e-12, rtol=0)
+    quadratic = interpolant_minimum(cubic, tri, 2, grid_level=level)
+    assert not torch.allclose(quadratic, brute)  # a lower degree misses the cubic term
+    assert torch.allclose(lagrange_nodes(3).sum(-1), torch.ones(10, dtype=torch.float64)) and lagrange_nodes(4).shape == (15, 3)
