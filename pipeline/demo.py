@@ -151,7 +151,7 @@ def demo_scene_spec() -> dict:
     }
 
 
-def error_vs_runtime(scene, contacts_fw, iters=(1, 2, 5, 10, 20, 50), repeats: int = 3) -> list[dict]:
+def error_vs_runtime(scene, iters=(1, 2, 5, 10, 20, 50), repeats: int = 3) -> list[dict]:
     """Optimality (eq. 12) and time of the amortized detector and of Frank-Wolfe at several iteration counts on
     the scene's candidates; times are medians of ``repeats`` calls after a warm-up (a first call pays for caches)."""
     from zoo.collide import candidate_triangles
@@ -198,7 +198,7 @@ def run_demo(out_dir: str = "out/demo") -> dict:
     if len(contacts) > 15:
         console.print(f"... {len(contacts) - 15} more in {paths['json']}")
 
-    rows = error_vs_runtime(scene, contacts)
+    rows = error_vs_runtime(scene)
     et = Table(title="error against run time on the candidate triangles (medians of 3 calls)")
     for col in ("method", "optimality mean", "optimality p90", "ms / triangle"):
         et.add_column(col)

@@ -111,7 +111,7 @@ def test_demo_error_against_run_time_on_the_bundled_model():
     from pipeline.demo import demo_scene, error_vs_runtime
 
     scene, _ = demo_scene()  # the bundled mugs model on a procedural rack: no ../shared needed
-    rows = {r["method"]: r for r in error_vs_runtime(scene, None, iters=(1, 10), repeats=1)}
+    rows = {r["method"]: r for r in error_vs_runtime(scene, iters=(1, 10), repeats=1)}
     assert set(rows) == {"amortized", "fw-1", "fw-10"}
     assert all(r["ms_per_triangle"] > 0 for r in rows.values())
     assert rows["fw-10"]["optimality_mean"] < rows["fw-1"]["optimality_mean"]
