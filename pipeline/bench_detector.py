@@ -270,12 +270,6 @@ def polished_best_vertex(sdf, triangles: torch.Tensor, rounds: int | None = None
                              fallback=(vertex, f, g))
 
 
-def lagrange_nodes(degree: int, dtype=torch.float64) -> torch.Tensor:
-    """The (k+1)(k+2)/2 points of the degree-k lattice on the triangle, as barycentrics (N, 3): (k-i-j, i, j) / k."""
-    ij = torch.tensor([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)], dtype=dtype)
-    return torch.cat([degree - ij.sum(-1, keepdim=True), ij], dim=-1) / degree
-
-
 def _monomials(bary: torch.Tensor, degree: int) -> torch.Tensor:
     """The monomials b1^a b2^c (a + c <= degree) at barycentrics (..., 3) -> (..., (k+1)(k+2)/2)."""
     u, v = bary[..., 1], bary[..., 2]
@@ -283,16 +277,19 @@ def _monomials(bary: torch.Tensor, degree: int) -> torch.Tensor:
 
 
 def interpolant_minimum(sdf, triangles: torch.Tensor, degree: int, grid_level: int = 240, chunk: int = 64) -> torch.Tensor:
-    """The minimum of the degree-``degree`` polynomial that equals ``sdf`` at each triangle's Lagrange nodes, found on
+    """The minimum of the degree-``degree`` polynomial that equals ``sdf`` at each triangle's Lagrange nodes (the
+    (k+1)(k+2)/2 points of ``zoo.solvers.barycentric_grid(k)``), found on
     the barycentric grid of ``grid_level``: triangles (M, 3, 3) -> bary (M, 3), in their dtype.
 
     The ceiling of a forward pass that models the SDF over the triangle by such a polynomial: it is given the exact
     values a network would have to predict. Grid spacing 1/``grid_level`` of the triangle (0.4% at the default: an
     order below the placement the bench's tolerance rows show matters).
     """
-    nodes = lagrange_nodes(degree)
+    from zoo.solvers import barycentric_grid
+
+    nodes = barycentric_grid(degree, torch.float64)
     to_coefficients = torch.linalg.inv(_monomials(nodes, degree))  # (N, N): node values -> monomial coefficients
-    grid = lagrange_nodes(grid_level)  # (Q, 3)
+    grid = barycentric_grid(grid_level, torch.float64)  # (Q, 3)
     at_grid = _monomials(grid, degree)  # (Q, N)
     out = []
     with torch.no_grad():

@@ -525,7 +525,8 @@ def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_tria
 
 
 def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_polynomial():
-    from pipeline.bench_detector import interpolant_minimum, lagrange_nodes
+    from pipeline.bench_detector import interpolant_minimum
+    from zoo.solvers import barycentric_grid
 
     a = torch.tensor([0.6, -0.3, 0.2], dtype=torch.float64)
 
@@ -536,10 +537,9 @@ def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_
     g = torch.Generator().manual_seed(3)
     tri = 0.1 * torch.randn(40, 3, 3, generator=g, dtype=torch.float64) + 0.2 * torch.randn(40, 1, 3, generator=g, dtype=torch.float64)
     level = 90
-    grid = lagrange_nodes(level)  # the brute force: the true function on the same grid
+    grid = barycentric_grid(level, torch.float64)  # the brute force: the true function on the same grid
     brute = grid[cubic(torch.einsum("qv,mvc->mqc", grid, tri).reshape(-1, 3)).reshape(40, -1).argmin(-1)]
     torch.testing.assert_close(interpolant_minimum(cubic, tri, 3, grid_level=level), brute, atol=1e-12, rtol=0)
     torch.testing.assert_close(interpolant_minimum(cubic, tri, 4, grid_level=level), brute, atol=1e-12, rtol=0)
     quadratic = interpolant_minimum(cubic, tri, 2, grid_level=level)
     assert not torch.allclose(quadratic, brute)  # a lower degree misses the cubic term
-    assert torch.allclose(lagrange_nodes(3).sum(-1), torch.ones(10, dtype=torch.float64)) and lagrange_nodes(4).shape == (15, 3)
