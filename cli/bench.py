@@ -40,7 +40,7 @@ def _run_solvers(opts: BenchOptions) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from pipeline.bench_solvers import TABLE_HEADER, format_table, run_solver_benchmark
+    from benches.solvers import TABLE_HEADER, format_table, run_solver_benchmark
 
     path = run_solver_benchmark(
         n_triangles=opts.triangles, out_dir=opts.out, seed=opts.seed, threads=opts.threads, progress=opts.progress
@@ -72,7 +72,7 @@ def _run_scenes(opts: BenchOptions) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from pipeline.bench_scenes import TABLE_HEADER, format_table, run_scene_benchmark
+    from benches.scenes import TABLE_HEADER, format_table, run_scene_benchmark
 
     console = Console(width=max(Console().width, 150))
     path = run_scene_benchmark(opts.scenes, out_dir=opts.out, threads=opts.threads,
@@ -108,7 +108,7 @@ def _run_detector(opts: BenchOptions) -> None:
 
     from rich.console import Console
 
-    from pipeline.bench_detector import BenchConfig, bench_model, format_tables
+    from benches.detector import BenchConfig, bench_model, format_tables
 
     config = BenchConfig(threads=opts.threads, n_per_shape=opts.n_per_shape)
     path = bench_model(opts.model, opts.out, config=config, max_shapes=opts.max_shapes, unseen_category=opts.unseen_category,

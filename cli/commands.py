@@ -1,4 +1,4 @@
-"""The commands of `zoo`. Each parses, calls pipeline or zoo, and prints; no logic lives here."""
+"""The commands of `zoo`. Each parses, calls zoo or benches, and prints; no logic lives here."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from .main import app
 @app.command()
 def demo(out: str = typer.Option("out/demo", help="Folder for the demo's JSON and PNG.")):
     """Run the bundled demo scene on the pretrained models shipped in the package."""
-    from pipeline.demo import run_demo
+    from benches.demo import run_demo
 
     run_demo(out)
 
@@ -22,7 +22,7 @@ def collide(
     method: str = typer.Option(None, help="Override the scene's method: fw | pgd | voxel-fw | amortized."),
 ):
     """Detect contacts in a scene; print a table and write JSON and a PNG."""
-    from pipeline.scenes import contacts_summary, load_scene, run_scene, write_outputs
+    from zoo.scenes import contacts_summary, load_scene, run_scene, write_outputs
 
     s = load_scene(scene)
     if method:
@@ -45,7 +45,7 @@ def stress(
     shape: str = typer.Option(None, help="The model's shape to use (default: its first)."),
 ):
     """Stiff and extreme cases and malformed input; each case says what was expected and what happened."""
-    from pipeline.stress import run_stress
+    from benches.stress import run_stress
 
     report = run_stress(out, model=model, shape=shape)
     for r in report["cases"]:

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 import zoo
-from pipeline import bench_scenes
-from pipeline.bench_scenes import (
+from benches import scenes as bench_scenes
+from benches.scenes import (
     PAPER_SCENES,
     BenchScene,
     matched_iterations,
@@ -24,7 +24,7 @@ from pipeline.bench_scenes import (
     voxel_region,
 )
 from pipeline.categories import load_category
-from pipeline.scenes import scene_from_dict
+from zoo.scenes import scene_from_dict
 from zoo.collide import DEFAULT_ITERS
 from zoo.registry import toml_parser
 

@@ -7,7 +7,7 @@ with at least 95% precision, counted over the triangles whose centroid lies outs
 (those with the centroid within it are contacts whatever the solver does), and moving the whole
 scene by one rigid motion must not change the contacts.
 
-The scene and the reference are :mod:`pipeline.bench_scenes`' (``cutting_mesh``,
+The scene and the reference are :mod:`benches.scenes`' (``cutting_mesh``,
 ``reference_contacts``), which `zoo bench --scenes` also runs. The reference is
 :func:`zoo.solvers.reference`: every point of a dense barycentric grid is a start
 (the vertices, points along the edges and inside the face), the best is polished by a pattern
@@ -28,9 +28,9 @@ import pytest
 import torch
 
 import zoo
-from pipeline.bench_scenes import CHECK_MARGIN_NORMALISED as MARGIN_NORMALISED
-from pipeline.bench_scenes import CHECK_SHAPE as PREFERRED_STEM
-from pipeline.bench_scenes import check_margin, cutting_mesh, reference_contacts
+from benches.scenes import CHECK_MARGIN_NORMALISED as MARGIN_NORMALISED
+from benches.scenes import CHECK_SHAPE as PREFERRED_STEM
+from benches.scenes import check_margin, cutting_mesh, reference_contacts
 from zoo.errors import ZooError
 from zoo.sdf import SDFBase
 
@@ -95,7 +95,7 @@ SUBJECT_ID, SUBJECT = _subject()
 
 
 # -- the scene ------------------------------------------------------------------------------
-# The scene and the reference live in pipeline.bench_scenes, where `zoo bench --scenes` also times
+# The scene and the reference live in benches.scenes, where `zoo bench --scenes` also times
 # the check (amortized against Frank-Wolfe at its default iterations) without asserting on time.
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import zoo
-from pipeline import parts
-from pipeline.scenes import load_scene, pose_matrix, run_scene, scene_from_dict, write_outputs
-from pipeline.stress import CASES, run_stress
+from zoo import parts
+from zoo.scenes import load_scene, pose_matrix, run_scene, scene_from_dict, write_outputs
+from benches.stress import CASES, run_stress
 from zoo.errors import DataError, InputError
 
 
@@ -99,7 +99,7 @@ def test_stress_malformed_inputs_all_raise_typed_errors(tmp_path):
 
 
 def test_stress_report_is_written(tmp_path, monkeypatch):
-    import pipeline.stress as stress
+    import benches.stress as stress
 
     monkeypatch.setattr(stress, "CASES", [c for c in stress.CASES if c[0] in ("zero gradient (medial axis)", "float32 against float64")])
     report = run_stress(tmp_path / "s.json")
@@ -108,7 +108,7 @@ def test_stress_report_is_written(tmp_path, monkeypatch):
 
 
 def test_demo_error_against_run_time_on_the_bundled_model():
-    from pipeline.demo import demo_scene, error_vs_runtime
+    from benches.demo import demo_scene, error_vs_runtime
 
     scene, _ = demo_scene()  # the bundled mugs model on a procedural rack: no ../shared needed
     rows = {r["method"]: r for r in error_vs_runtime(scene, iters=(1, 10), repeats=1)}

@@ -583,7 +583,7 @@ def test_sampled_triangles_meet_the_paper_conditions():
 
 
 def test_solver_benchmark_writes_its_json(tmp_path):
-    from pipeline.bench_solvers import run_solver_benchmark
+    from benches.solvers import run_solver_benchmark
 
     path = run_solver_benchmark(
         n_triangles=300, out_dir=tmp_path, fw_iters=(1, 5, 20), repeats=3, batch=150, progress=False,
@@ -593,7 +593,7 @@ def test_solver_benchmark_writes_its_json(tmp_path):
     assert {"machine", "config", "reference", "solvers"} <= set(report)
     assert {"torch", "threads", "cpu"} <= set(report["machine"])
     # the bench keeps freed memory in the process (steady timings), once, and says so
-    from pipeline.bench_solvers import STEADY_ALLOCATOR, steady_allocator
+    from benches.solvers import STEADY_ALLOCATOR, steady_allocator
 
     assert report["machine"]["allocator"] == steady_allocator() != "unchanged"
     if platform.libc_ver()[0] == "glibc":

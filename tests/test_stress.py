@@ -7,12 +7,12 @@ import json
 import pytest
 
 import zoo
-from pipeline.stress import CASES, run_stress
+from benches.stress import CASES, run_stress
 from zoo.errors import DataError
 
 
 def test_stress_reports_extreme_training_batches_ok(tmp_path, monkeypatch):
-    import pipeline.stress as stress
+    import benches.stress as stress
 
     monkeypatch.setattr(stress, "CASES", [c for c in CASES if c[0] == "extreme training batches"])
     report = run_stress(tmp_path / "s.json")

@@ -46,7 +46,7 @@ from zoo.errors import InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, edge_lengths
 
-from .bench_solvers import machine_info, steady_allocator
+from .solvers import machine_info, steady_allocator
 
 JSON_NAME = "bench_detector.json"
 # the detector as zoo's detect() runs it by default: the vertex test, then the forward pass and line-search steps
@@ -242,7 +242,7 @@ def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
     from zoo.detector import quadratic_argmin
     from zoo.solvers import vertex_values
 
-    from .train_detector import midpoint_curvatures
+    from pipeline.train_detector import midpoint_curvatures
 
     return quadratic_argmin(vertex_values(sdf, triangles), midpoint_curvatures(sdf, triangles).clamp_min(0))
 
@@ -643,7 +643,7 @@ def bench_model(model_spec, out_dir="bench-results", unseen_meshes=(), config: B
 
 def unseen_test_shapes(model, category: str, data_dir=None, count: int = 3, iters: int = 500) -> list:
     """The first ``count`` meshes of ``category``'s test split, fitted with the decoder frozen (their own up axes)."""
-    from .categories import load_category, resolve_data_dir, verify_meshes
+    from pipeline.categories import load_category, resolve_data_dir, verify_meshes
 
     cat = load_category(category)
     stems = cat.stems("test")[:count]
@@ -679,7 +679,7 @@ def main(argv=None) -> None:
 
     import zoo
 
-    from .train_detector import load_detector
+    from pipeline.train_detector import load_detector
 
     config = QUICK if args.quick else BenchConfig()
     if args.n_per_shape:

@@ -16,13 +16,13 @@ import torch
 import zoo
 from zoo.errors import InputError, ZooError
 
-from .parts import make_part
-from .scenes import Scene, run_scene, scene_from_dict, write_outputs
+from zoo.parts import make_part
+from zoo.scenes import Scene, run_scene, scene_from_dict, write_outputs
 
 MUG_MODEL = "mugs"
 PREFERRED_MUGS = ("hoi4d_mug_0001",)  # scanned mugs in metres; any other shape works too
 RACK = {"height": 0.30, "post_radius": 0.012, "peg_length": 0.09, "peg_radius": 0.006, "peg_height": 0.20,
-        "peg_angle_deg": 20.0, "base": 0.16, "max_edge": 0.006}  # pipeline.parts.rack's, in metres
+        "peg_angle_deg": 20.0, "base": 0.16, "max_edge": 0.006}  # zoo.parts.rack's, in metres
 RACK_MUG_SIZE = 0.13  # the mug size (normalised cube side, metres) the rack's sizes suit
 
 
@@ -157,7 +157,7 @@ def error_vs_runtime(scene, iters=(1, 2, 5, 10, 20, 50), repeats: int = 3) -> li
     from zoo.collide import candidate_triangles
     from zoo.geometry import invert_pose, transform_points
 
-    from .bench_scenes import median_seconds
+    from .scenes import median_seconds
 
     sdf_from_mesh = invert_pose(torch.as_tensor(scene.sdf_pose, dtype=torch.float64)) @ torch.as_tensor(scene.mesh_pose)
     verts = transform_points(sdf_from_mesh.float(), torch.as_tensor(np.asarray(scene.mesh.vertices), dtype=torch.float32))

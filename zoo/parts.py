@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from zoo.errors import InputError
+from .errors import InputError
 
 
 def _finish(parts: list[trimesh.Trimesh], max_edge: float) -> trimesh.Trimesh:
@@ -38,12 +38,6 @@ def rack(
     tip = (peg_length * np.cos(a), 0.0, peg_height + peg_length * np.sin(a))
     peg = trimesh.creation.cylinder(radius=peg_radius, segment=[(0, 0, peg_height), tip], sections=16)
     return _finish([plate, post, peg], max_edge)
-
-
-def peg_tip(peg_length: float = 0.09, peg_height: float = 0.20, peg_angle_deg: float = 20.0) -> np.ndarray:
-    """Where the rack's peg ends, for placing a mug on it: (3,)."""
-    a = np.radians(peg_angle_deg)
-    return np.array([peg_length * np.cos(a), 0.0, peg_height + peg_length * np.sin(a)])
 
 
 def holder(

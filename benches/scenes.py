@@ -79,8 +79,9 @@ from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
 from zoo.voxel import VoxelSDF
 
-from .bench_solvers import machine_info, steady_allocator
-from .scenes import Scene, load_scene, scene_from_dict
+from zoo.scenes import Scene, load_scene, scene_from_dict
+
+from .solvers import machine_info, steady_allocator
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 PAPER_SCENES = ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")
@@ -213,7 +214,7 @@ def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_c
     """
     from zoo.meshes import load_mesh
 
-    from .categories import load_category, resolve_data_dir
+    from pipeline.categories import load_category, resolve_data_dir
 
     category = load_category(model)
     mesh_path = resolve_data_dir(None, category) / category.entry(shape).file
@@ -492,7 +493,7 @@ def measure_method(bs, name, fw_iters, refine, tri, repeats, memory, scene_path,
         row.update(grid_samples_built=int(np.prod(region[2])), grid_bytes_full=region[3], grid_per_axis_built=list(region[2]))
         if row["grid_samples_built"] > MAX_VOXEL_SAMPLES:
             return {**row, "skipped": f"building {row['grid_samples_built']:,} samples of the SDF exceeds the limit of "
-                                      f"{MAX_VOXEL_SAMPLES:,} (pipeline.bench_scenes.MAX_VOXEL_SAMPLES)"}
+                                      f"{MAX_VOXEL_SAMPLES:,} (benches.scenes.MAX_VOXEL_SAMPLES)"}
     t0 = time.perf_counter()
     kwargs, sdf = method_call(bs, name, fw_iters, refine, region)  # builds the voxel grid, if any
     row["setup_s"] = time.perf_counter() - t0
@@ -522,7 +523,7 @@ def measure_method(bs, name, fw_iters, refine, tri, repeats, memory, scene_path,
 
 def peak_memory_in_child(scene_path: Path, method: str, fw_iters: int, refine: int, standin_dir: str) -> dict:
     """Peak RSS (MB) of a fresh process: after loading the scene, and after one collide with ``method``."""
-    cmd = [sys.executable, "-m", "pipeline.bench_scenes", "--child", str(scene_path), method, str(fw_iters), str(refine), standin_dir]
+    cmd = [sys.executable, "-m", "benches.scenes", "--child", str(scene_path), method, str(fw_iters), str(refine), standin_dir]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parent.parent)
     if done.returncode != 0:
@@ -695,4 +696,4 @@ if __name__ == "__main__":  # the memory probe's child process
     if len(sys.argv) == 7 and sys.argv[1] == "--child":
         _child(*sys.argv[2:])
     else:
-        raise SystemExit("usage: python -m pipeline.bench_scenes --child SCENE METHOD FW_ITERS REFINE STANDIN_DIR")
+        raise SystemExit("usage: python -m benches.scenes --child SCENE METHOD FW_ITERS REFINE STANDIN_DIR")

@@ -13,7 +13,7 @@ shape = "hoi4d_mug_0001"  # one of its shapes; or `fit = "new_mug.obj"` to fit_c
 pose = { translation = [0, 0, 0], rotation_deg = [0, 0, 0] }   # xyz Euler angles, degrees
 
 [mesh]
-procedural = "rack"       # pipeline.parts: rack | holder | plane, with `params = {...}`
+procedural = "rack"       # zoo.parts: rack | holder | plane, with `params = {...}`
 # file = "rack/ndf_simple_rack.obj"   # or a mesh file: relative to the scene file, then $ZOO_DATA
 scale = 1.0               # e.g. 0.001 for a mesh in millimetres
 pose = { translation = [0, 0, 0] }

@@ -24,7 +24,7 @@ import zoo
 from zoo import solvers
 from zoo.files import atomic_write_text
 
-from .triangle_sampling import sample_constrained_triangles
+from pipeline.triangle_sampling import sample_constrained_triangles
 
 FW_ITERS = (1, 2, 5, 10, 20, 50, 100)
 RESULT_NAME = "solvers.json"

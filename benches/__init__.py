@@ -1,0 +1,1 @@
+"""Benchmarks, the stress harness and the demo: they measure and exercise zoo and pipeline, and are no stage of either."""
