@@ -12,7 +12,7 @@ import math
 
 import torch
 
-from zoo import geometry
+from zoo import geometry, validation
 from zoo.errors import DataError, InputError
 from zoo.sdf import check_sdf
 from zoo.solvers import frank_wolfe
@@ -92,7 +92,7 @@ def meets_conditions(sdf, triangles, *, edge_range=EDGE_RANGE, area_range=AREA_R
                      centroid_sdf_range=CENTROID_SDF_RANGE, min_sdf_iters=MIN_SDF_ITERS) -> torch.Tensor:
     """(M,) bool: which of ``triangles`` (M, 3, 3) satisfy the four conditions."""
     check_sdf(sdf)
-    tri = geometry.as_triangles(triangles)
+    tri = validation.as_triangles(triangles)
     return _meets_conditions(sdf, tri, edge_range, area_range, centroid_sdf_range, min_sdf_iters)
 
 

@@ -36,7 +36,6 @@ other: their minimum lies on a segment or a point, which every solver handles.
 from __future__ import annotations
 
 import math
-import numbers
 import time
 from dataclasses import dataclass, field
 
@@ -44,16 +43,9 @@ import torch
 
 from .detect import cell_lower_bounds, unique_rows
 from .errors import InputError
-from .geometry import (
-    as_pose,
-    as_points,
-    as_triangles,
-    bary_to_points,
-    invert_pose,
-    transform_points,
-    transform_vectors,
-)
+from .geometry import bary_to_points, invert_pose, transform_points, transform_vectors
 from .sdf import check_sdf
+from .validation import as_points, as_pose, as_triangles, int_at_least, non_negative_float
 
 METHODS = ("fw", "pgd", "voxel-fw", "amortized")
 DEFAULT_ITERS = {"fw": 10, "pgd": 32, "voxel-fw": 10}
@@ -117,7 +109,7 @@ def candidate_triangles(sdf, triangles, margin: float = 1e-3) -> torch.Tensor:
     """
     check_sdf(sdf)
     triangles = as_triangles(triangles)
-    margin = _margin(margin)
+    margin = non_negative_float(margin, "margin")
     near_box = _overlaps_bounds(sdf, triangles, margin).nonzero().squeeze(-1)
     if near_box.numel() == 0:
         return near_box
@@ -264,10 +256,10 @@ def collide(
         from .voxel import resolution_per_axis
 
         resolution_per_axis(voxel_resolution)  # refuse a bad resolution even when nothing is near
-    refine = _count(refine, "refine")
+    refine = int_at_least(refine, "refine")
     if not polish and method != "amortized":
         raise InputError(f'polish=False applies to method="amortized" only (got method={method!r}); drop it')
-    margin = _margin(margin)
+    margin = non_negative_float(margin, "margin")
     vertices, faces = _mesh_arrays(mesh)
     sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(vertices.device)
     mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(vertices.device)
@@ -435,23 +427,7 @@ def _iters(method: str, iters) -> int | None:
         if iters is not None:
             raise InputError('iters has no meaning for method="amortized" (one pass); use refine=N for Frank-Wolfe steps after it')
         return None
-    return DEFAULT_ITERS[method] if iters is None else _count(iters, "iters", minimum=1)
-
-
-def _count(value, name: str, minimum: int = 0) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise InputError(f"{name} must be an int >= {minimum}, got {value!r}")
-    return int(value)
-
-
-def _margin(margin) -> float:
-    try:
-        m = float(margin)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"margin must be a number >= 0, got {margin!r}") from exc
-    if not (m >= 0 and m < float("inf")):
-        raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
-    return m
+    return DEFAULT_ITERS[method] if iters is None else int_at_least(iters, "iters", minimum=1)
 
 
 def _empty_contacts(triangles: torch.Tensor, n_triangles: int, method: str) -> Contacts:

@@ -27,7 +27,8 @@ from torch.nn import functional as F
 
 from .detector import AmortizedDetector
 from .errors import InputError
-from .geometry import as_triangles, bary_to_points, edge_lengths
+from .geometry import bary_to_points, edge_lengths
+from .validation import as_triangles
 
 # Value queries after the polish's gradient query (zoo.solvers.line_search_step). On the bench's 800
 # seen-mug triangles (4 mugs x 200, mugs@1.3.0) the polished mean optimality was 1.4e-3 with none,

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from .errors import InputError
-from .geometry import as_points
+from .validation import as_points
 from .sdf import SDFBase
 
 # Queries are evaluated in chunks so that the (chunk, n_codes) weight matrix stays around

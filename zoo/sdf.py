@@ -15,7 +15,7 @@ from typing import Protocol, runtime_checkable
 import torch
 
 from .errors import InputError
-from .geometry import as_points
+from .validation import as_points, positive_float, vector3
 
 
 @runtime_checkable
@@ -74,20 +74,6 @@ class SDFBase:
         return torch.as_tensor(value, dtype=points.dtype, device=points.device)
 
 
-def _vector3(value, name: str) -> torch.Tensor:
-    t = torch.as_tensor(value, dtype=torch.float64)
-    if t.shape != (3,) or not bool(torch.isfinite(t).all()):
-        raise InputError(f"{name} must be three finite numbers, got {value!r}")
-    return t
-
-
-def _positive(value, name: str) -> float:
-    v = float(value)
-    if not (v > 0 and v < float("inf")):
-        raise InputError(f"{name} must be a positive finite number, got {value!r}")
-    return v
-
-
 def _unit_gradient(offset: torch.Tensor) -> torch.Tensor:
     """Direction of ``offset`` (N, 3); an arbitrary unit vector where it vanishes (medial points)."""
     n = offset.norm(dim=-1, keepdim=True)
@@ -100,8 +86,8 @@ class Sphere(SDFBase):
     """Sphere of ``radius`` about ``center``."""
 
     def __init__(self, radius: float = 0.25, center=(0.0, 0.0, 0.0)):
-        self.radius = _positive(radius, "radius")
-        self.center = _vector3(center, "center")
+        self.radius = positive_float(radius, "radius")
+        self.center = vector3(center, "center")
         self.bounds = (self.center.float() - self.radius, self.center.float() + self.radius)
 
     def _distance(self, points):
@@ -119,10 +105,10 @@ class Box(SDFBase):
     """Axis-aligned box with ``half_extents`` about ``center``; exact distance inside and out."""
 
     def __init__(self, half_extents=(0.2, 0.15, 0.1), center=(0.0, 0.0, 0.0)):
-        self.half_extents = _vector3(half_extents, "half_extents")
+        self.half_extents = vector3(half_extents, "half_extents")
         if bool((self.half_extents <= 0).any()):
             raise InputError(f"half_extents must be positive, got {half_extents!r}")
-        self.center = _vector3(center, "center")
+        self.center = vector3(center, "center")
         self.bounds = ((self.center - self.half_extents).float(), (self.center + self.half_extents).float())
 
     def _distance(self, points):
@@ -139,11 +125,11 @@ class Torus(SDFBase):
     """Torus about ``center`` with its axis along z: ring radius ``major``, tube radius ``minor``."""
 
     def __init__(self, major: float = 0.25, minor: float = 0.08, center=(0.0, 0.0, 0.0)):
-        self.major = _positive(major, "major")
-        self.minor = _positive(minor, "minor")
+        self.major = positive_float(major, "major")
+        self.minor = positive_float(minor, "minor")
         if self.minor >= self.major:
             raise InputError(f"minor ({minor}) must be smaller than major ({major}) for a ring torus")
-        self.center = _vector3(center, "center")
+        self.center = vector3(center, "center")
         r = self.major + self.minor
         ext = torch.tensor([r, r, self.minor], dtype=torch.float64)
         self.bounds = ((self.center - ext).float(), (self.center + ext).float())
@@ -177,9 +163,9 @@ class Capsule(SDFBase):
     """Segment from ``a`` to ``b`` swept by a ball of ``radius``."""
 
     def __init__(self, a=(0.0, 0.0, -0.2), b=(0.0, 0.0, 0.2), radius: float = 0.1):
-        self.a = _vector3(a, "a")
-        self.b = _vector3(b, "b")
-        self.radius = _positive(radius, "radius")
+        self.a = vector3(a, "a")
+        self.b = vector3(b, "b")
+        self.radius = positive_float(radius, "radius")
         self.bounds = ((torch.minimum(self.a, self.b) - self.radius).float(), (torch.maximum(self.a, self.b) + self.radius).float())
 
     def _offset(self, points):
@@ -204,7 +190,8 @@ class TransformedSDF(SDFBase):
     """An SDF placed by a rigid 4x4 transform (world-from-object); distances are unchanged."""
 
     def __init__(self, sdf, pose: torch.Tensor):
-        from .geometry import as_pose, invert_pose, transform_points
+        from .geometry import invert_pose, transform_points
+        from .validation import as_pose
 
         check_sdf(sdf)
         self.sdf = sdf

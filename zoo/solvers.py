@@ -27,12 +27,9 @@ import math
 import torch
 
 from .errors import InputError
-from .geometry import as_barycentric, as_triangles, bary_to_points, mean_edge_length, perimeter
+from .geometry import bary_to_points, mean_edge_length, perimeter
 from .sdf import check_sdf
-
-# Coordinates this far below 0, or rows whose sum is this far from 1, are rejected as not barycentric;
-# closer ones (rounding from a softmax or from many convex combinations) are snapped back.
-_SIMPLEX_TOL = 1e-4
+from .validation import as_rows, as_simplex, as_triangles, float_in, non_negative_int
 
 VERTEX, EDGE, FACE = 0, 1, 2
 """Codes :func:`minimum_location` returns."""
@@ -68,10 +65,10 @@ def frank_wolfe(sdf, triangles, iters: int = 10, init=None, *, warm_start_offset
         (M, 3) barycentric coordinates, the dtype of ``triangles``.
     """
     tri = _prepare(sdf, triangles)
-    iters = _non_negative_int(iters, "iters")
-    offset = _non_negative_int(warm_start_offset, "warm_start_offset")
+    iters = non_negative_int(iters, "iters")
+    offset = non_negative_int(warm_start_offset, "warm_start_offset")
     warm = init is not None
-    bary = _as_simplex(init, tri, "init") if warm else _centroid_bary(tri)
+    bary = as_simplex(init, tri, "init") if warm else _centroid_bary(tri)
     if not warm:
         offset = 0
     best_bary, best_f = bary, None
@@ -117,8 +114,8 @@ def line_search_step(sdf, triangles, init, vertex_values=None, line_steps: int =
         (M, 3) barycentric coordinates, the dtype of ``triangles``.
     """
     tri = _prepare(sdf, triangles)
-    bary = _as_simplex(init, tri, "init")
-    line_steps = _non_negative_int(line_steps, "line_steps")
+    bary = as_simplex(init, tri, "init")
+    line_steps = non_negative_int(line_steps, "line_steps")
     fv = _given_vertex_values(sdf, tri, vertex_values)
     rows = torch.arange(tri.shape[0], device=tri.device)
     f0, g = _value_and_grad(sdf, tri, bary) if start is None else _start_value_and_grad(start, bary)
@@ -156,7 +153,7 @@ def line_search_steps(sdf, triangles, init, vertex_values, steps, line_steps: in
     rows still moving only.
     """
     tri = _prepare(sdf, triangles)
-    bary = _as_simplex(init, tri, "init").clone()
+    bary = as_simplex(init, tri, "init").clone()
     budget = _steps_per_row(steps, tri.shape[0], tri.device)
     fv = _given_vertex_values(sdf, tri, vertex_values)
     rows = (budget > 0).nonzero().squeeze(-1)  # the rows still moving, with f and g at their answers
@@ -199,7 +196,7 @@ def _steps_per_row(steps, m: int, device) -> torch.Tensor:
         if bool((steps < 0).any()):
             raise InputError("steps must be >= 0 on every row")
         return steps.to(device=device, dtype=torch.int64)
-    return torch.full((m,), _non_negative_int(steps, "steps"), dtype=torch.int64, device=device)
+    return torch.full((m,), non_negative_int(steps, "steps"), dtype=torch.int64, device=device)
 
 
 def vertex_values(sdf, triangles) -> torch.Tensor:
@@ -211,14 +208,14 @@ def vertex_values(sdf, triangles) -> torch.Tensor:
 
 def _given_vertex_values(sdf, tri: torch.Tensor, values) -> torch.Tensor:
     """``values`` (M, 3) checked against ``tri`` (M, 3, 3), or queried where None."""
-    fv = vertex_values(sdf, tri) if values is None else _as_float(values, "vertex_values").to(tri)
+    fv = vertex_values(sdf, tri) if values is None else as_rows(values, "vertex_values").to(tri)
     if fv.shape != tri.shape[:2]:
         raise InputError(f"vertex_values must have shape {tuple(tri.shape[:2])} (one value per vertex), got {tuple(fv.shape)}")
     return fv
 
 
 def _start_value_and_grad(start, bary: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    f0, g = (_as_float(x, name).to(bary) for x, name in zip(start, ("start value", "start gradient")))
+    f0, g = (as_rows(x, name).to(bary) for x, name in zip(start, ("start value", "start gradient")))
     if f0.shape != bary.shape[:1] or g.shape != bary.shape:
         raise InputError(f"start must be (f (M,), grad (M, 3)) for {bary.shape[0]} triangles, got {tuple(f0.shape)} and {tuple(g.shape)}")
     return f0, g
@@ -296,10 +293,10 @@ def projected_gradient(
         (M, 3) barycentric coordinates; with ``return_iterations``, a tuple (bary, iterations run).
     """
     tri = _prepare(sdf, triangles)
-    iters = _non_negative_int(iters, "iters")
-    step = _positive_float(step, "step")
-    decay = _float_in(decay, "decay", 0.0, 1.0, low_open=True)
-    tol = _float_in(tol, "tol", 0.0, math.inf)
+    iters = non_negative_int(iters, "iters")
+    step = float_in(step, "step", 0.0, math.inf, low_open=True)
+    decay = float_in(decay, "decay", 0.0, 1.0, low_open=True)
+    tol = float_in(tol, "tol", 0.0, math.inf)
     bary = _best_start(sdf, tri)
     scale = mean_edge_length(tri)
     # A triangle with no extent has one point: leave it where it started.
@@ -346,11 +343,11 @@ def reference(sdf, triangles, resolution: int = 32, polish_iters: int = 100, chu
         (M, 3) barycentric coordinates.
     """
     tri = _prepare(sdf, triangles)
-    resolution = _non_negative_int(resolution, "resolution")
+    resolution = non_negative_int(resolution, "resolution")
     if resolution < 1:
         raise InputError("resolution must be at least 1 (grid subdivisions per edge); 32 is a good default")
-    polish_iters = _non_negative_int(polish_iters, "polish_iters")
-    chunk_points = _non_negative_int(chunk_points, "chunk_points")
+    polish_iters = non_negative_int(polish_iters, "polish_iters")
+    chunk_points = non_negative_int(chunk_points, "chunk_points")
     grid = barycentric_grid(resolution, dtype=tri.dtype, device=tri.device)
     per_chunk = max(1, chunk_points // grid.shape[0])
     out = []
@@ -382,7 +379,7 @@ def optimality(sdf, triangles, bary) -> torch.Tensor:
         (M,) non-negative, the dtype of ``triangles``.
     """
     tri = _prepare(sdf, triangles)
-    b = _as_simplex(bary, tri, "bary")
+    b = as_simplex(bary, tri, "bary")
     _, g = _value_and_grad(sdf, tri, b)
     scores = _vertex_scores(tri, g)  # (M, 3): g . v_i
     v_min = tri.gather(1, scores.argmin(dim=-1).view(-1, 1, 1).expand(-1, 1, 3))  # (M, 1, 3)
@@ -406,8 +403,8 @@ def nme(bary, ref_bary, triangles) -> torch.Tensor:
         (M,); 0 for a triangle with no extent.
     """
     tri = as_triangles(triangles)
-    p = bary_to_points(tri, _as_simplex(bary, tri, "bary"))
-    q = bary_to_points(tri, _as_simplex(ref_bary, tri, "ref_bary"))
+    p = bary_to_points(tri, as_simplex(bary, tri, "bary"))
+    q = bary_to_points(tri, as_simplex(ref_bary, tri, "ref_bary"))
     err = (p - q).norm(dim=-1)
     scale = mean_edge_length(tri)
     return torch.where(scale > 0, err / scale.clamp_min(torch.finfo(tri.dtype).tiny), torch.zeros_like(err))
@@ -425,10 +422,10 @@ def minimum_location(bary, tol: float = 1e-4) -> torch.Tensor:
     Returns:
         (M,) int64.
     """
-    b = _as_float(bary, "bary")
+    b = as_rows(bary, "bary")
     if b.ndim != 2 or b.shape[-1] != 3:
         raise InputError(f"bary must have shape (M, 3), got {tuple(b.shape)}")
-    tol = _float_in(tol, "tol", 0.0, 1.0 / 3.0, high_open=True)
+    tol = float_in(tol, "tol", 0.0, 1.0 / 3.0, high_open=True)
     return ((b > tol).sum(dim=-1) - 1).clamp(VERTEX, FACE)
 
 
@@ -446,7 +443,7 @@ def project_to_simplex(x) -> torch.Tensor:
     Returns:
         (..., n) non-negative rows summing to 1, the dtype of ``x``.
     """
-    x = _as_float(x, "x")
+    x = as_rows(x, "x")
     n = x.shape[-1]
     u = x.sort(dim=-1, descending=True).values
     css = u.cumsum(dim=-1) - 1.0
@@ -572,57 +569,3 @@ def _pattern_search(sdf, tri, bary, f, spacing: float, iters: int) -> torch.Tens
         f = torch.where(better, f_cand, f)
         h = torch.where(better, h, h / 2)
     return bary
-
-
-def _as_simplex(bary, tri: torch.Tensor, name: str) -> torch.Tensor:
-    """Validate (M, 3) barycentric coordinates and snap rounding-level deviations back onto the simplex."""
-    b = as_barycentric(bary, tri, name)
-    if bool((b < -_SIMPLEX_TOL).any()) or bool(((b.sum(dim=-1) - 1).abs() > _SIMPLEX_TOL).any()):
-        raise InputError(
-            f"{name} must be barycentric coordinates (non-negative, rows summing to 1); "
-            "project them first with zoo.solvers.project_to_simplex"
-        )
-    b = b.clamp_min(0)
-    return b / b.sum(dim=-1, keepdim=True)
-
-
-def _as_float(x, name: str) -> torch.Tensor:
-    try:
-        t = torch.as_tensor(x)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"{name} must be array-like of numbers, got {type(x).__name__}") from exc
-    if t.dtype not in (torch.float32, torch.float64):
-        if t.is_complex() or t.dtype == torch.bool:
-            raise InputError(f"{name} must hold real numbers, got dtype {t.dtype}")
-        t = t.to(torch.float32)
-    if t.numel() == 0 or t.ndim == 0:
-        raise InputError(f"{name} is empty or a scalar (shape {tuple(t.shape)}); pass at least one row")
-    if not bool(torch.isfinite(t).all()):
-        raise InputError(f"{name} holds NaN or Inf; remove or fix those rows before calling")
-    return t
-
-
-def _non_negative_int(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) and not (hasattr(value, "__index__")):
-        raise InputError(f"{name} must be a non-negative integer, got {value!r}")
-    v = int(value)
-    if v < 0:
-        raise InputError(f"{name} must be a non-negative integer, got {value!r}")
-    return v
-
-
-def _positive_float(value, name: str) -> float:
-    return _float_in(value, name, 0.0, math.inf, low_open=True)
-
-
-def _float_in(value, name: str, low: float, high: float, low_open: bool = False, high_open: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} must be a number, got {value!r}") from exc
-    too_low = v <= low if low_open else v < low
-    too_high = v >= high if high_open else v > high
-    if math.isnan(v) or too_low or too_high or math.isinf(v):
-        lo, hi = ("(" if low_open else "[") + f"{low}", f"{high}" + (")" if high_open else "]")
-        raise InputError(f"{name} must be a finite number in {lo}, {hi}, got {value!r}")
-    return v

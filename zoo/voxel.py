@@ -28,7 +28,7 @@ import numbers
 import torch
 
 from .errors import InputError
-from .geometry import as_points
+from .validation import as_points, positive_float
 from .sdf import check_sdf
 
 GiB = 1 << 30
@@ -75,7 +75,7 @@ class VoxelSDF:
         self.lo, self.hi = _padded_box(sdf.bounds if bounds is None else bounds, padding)
         self.spacing = (self.hi - self.lo) / (torch.tensor(self.shape, dtype=torch.float64) - 1)
         self.padding = float(padding)
-        self.truncation = None if truncation is None else _positive(truncation, "truncation")
+        self.truncation = None if truncation is None else positive_float(truncation, "truncation")
         chunk = int(chunk)
         if chunk < 1:
             raise InputError(f"chunk must be a positive number of grid points per call, got {chunk}")
@@ -239,10 +239,3 @@ def _padded_box(bounds, padding: float) -> tuple[torch.Tensor, torch.Tensor]:
         raise InputError(f"padding must be a finite fraction >= 0 of the box's longest side, got {padding!r}")
     pad = padding * float((hi - lo).max())
     return lo - pad, hi + pad
-
-
-def _positive(value, name: str) -> float:
-    v = float(value)
-    if not (v > 0 and math.isfinite(v)):
-        raise InputError(f"{name} must be a positive finite number, got {value!r}")
-    return v
