@@ -13,12 +13,11 @@ import typer
 from zoo.errors import ZooError
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="Neural SDFs and amortized collision detection.")
-_state = {"debug": False}
 
 
 @app.callback()
 def _options(debug: bool = typer.Option(False, "--debug", help="Show full tracebacks on errors.")):
-    _state["debug"] = debug
+    """Declares ``--debug`` for the help text; :func:`main` reads it from argv before typer runs."""
 
 
 def register_commands() -> None:

@@ -6,8 +6,8 @@ card and ``SHA256SUMS``). Loading verifies the sha256 of every file it reads: ``
 against the manifest, every other file against ``SHA256SUMS``.
 
 Where things are found (read at call time, so tests and users can point elsewhere):
-  * ``ZOO_MANIFESTS``: the manifests folder (holding ``models/``); default ``manifests/`` beside
-    the ``zoo`` package (an editable install or a clone), else ``zoo/manifests``.
+  * ``ZOO_MANIFESTS``: the manifests folder (holding ``models/``); default the project's
+    ``manifests/`` (a clone or an editable install), else the wheel's ``zoo/data/manifests``.
   * ``ZOO_PRETRAINED``: the folder holding the package directories; default ``zoo/pretrained``.
 """
 
@@ -21,6 +21,7 @@ from pathlib import Path
 
 from .errors import ChecksumError, DataError, InputError, ModelNotFoundError
 from .files import CHECKSUMS, read_checksums, sha256_file, verify_directory
+from .resources import bundled
 
 MANIFESTS_ENV = "ZOO_MANIFESTS"
 PRETRAINED_ENV = "ZOO_PRETRAINED"
@@ -77,13 +78,9 @@ def check_model_name(name: str) -> str:
 
 
 def manifests_dir() -> Path:
-    """The manifests folder: ``$ZOO_MANIFESTS``, else the project's ``manifests/``, else ``zoo/manifests``."""
+    """The manifests folder: ``$ZOO_MANIFESTS``, else the project's ``manifests/`` (a clone), else the wheel's copy."""
     override = os.environ.get(MANIFESTS_ENV)
-    if override:
-        return Path(override)
-    here = Path(__file__).resolve().parent
-    beside_package = here.parent / "manifests"  # a clone or an editable install
-    return beside_package if beside_package.is_dir() else here / "manifests"
+    return Path(override) if override else bundled("manifests")
 
 
 def model_manifests_dir() -> Path:
