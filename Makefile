@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 # would pull a multi-GB CUDA build. A GPU user installs their own torch first.
 TORCH  ?= torch==2.13.0
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test lint bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,9 @@ demo: setup
 
 test: setup
 	$(BIN)/python -m pytest -q -x --durations=10
+
+lint: setup
+	$(BIN)/ruff check .
 
 bench: setup
 	$(BIN)/zoo bench --solvers
