@@ -18,16 +18,20 @@ The exact distance is :func:`zoo.meshes.signed_distance` (libigl; winding-number
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from zoo.config import DictConfig
 from zoo.meshes import sample_surface, signed_distance
 
 
 @dataclass(frozen=True)
-class EvalConfig:
+class EvalConfig(DictConfig):
+    """How many fresh points, where, and whether to measure Chamfer (all lengths x the object's size)."""
+
+    _config_name = "evaluation config"
     n_near: int = 20_000
     n_uniform: int = 20_000
     near_sigma: float = 0.01  # x size
@@ -36,9 +40,6 @@ class EvalConfig:
     chamfer_resolution: int = 0  # marching-cubes grid per axis; 0 skips Chamfer
     chamfer_points: int = 20_000
     seed: int = 1234  # differs from the samples stage's seeds: these are fresh points
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def evaluation_points(mesh, config: EvalConfig) -> tuple[np.ndarray, np.ndarray, float]:

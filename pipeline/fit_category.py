@@ -27,16 +27,14 @@ from pathlib import Path
 
 import torch
 
-from zoo.errors import InputError
 from zoo.files import atomic_path
 
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
 from .fit_sdf import FitConfig, load_training_data, fit_sdf, print_log, save_result
 from .fit_sdf import preset as fit_preset
+from .presets import Presets
 from .samples import SampleConfig, prepare_mesh
 from .stages import Stage, run_stage
-
-CODE_VERSION = "fit_category/1"
 
 
 # --------------------------------------------------------------------------- presets
@@ -64,24 +62,20 @@ class Preset:
         return replace(self.fit, steps=max(self.min_steps, min(self.fit.steps, steps)))
 
 
-PRESETS = {
+PRESETS = Presets(
+    "fit-category",
     # a pipeline check for tests and CI: four shapes, a small network, well under a minute of training
-    "quick": Preset("quick", SampleConfig(n_points=20_000), fit_preset("quick"),
+    quick=Preset("quick", SampleConfig(n_points=20_000), fit_preset("quick"),
                     EvalConfig(n_near=2_000, n_uniform=2_000), max_shapes=4),
     # the shipped models: every train shape; see pipeline.fit_sdf.PRESETS["default"] for the budget
     # 100k samples per shape: training visits ~300k points per shape, and exact SDF sampling of
     # 54 meshes at 250k points each took longer than the training budget on the shared machine
     # 37 steps per shape (each shape in ~300 batches of 8): 2000 steps for the 54 mugs (~30-40 min
     # on the shared 2-core machine), 740 for the 20 bottles
-    "default": Preset("default", SampleConfig(n_points=100_000), fit_preset("default"),
-                      EvalConfig(n_near=10_000, n_uniform=10_000), steps_per_shape=37.1, min_steps=600),
-}
-
-
-def get_preset(name: str) -> Preset:
-    if name not in PRESETS:
-        raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return PRESETS[name]
+    default=Preset("default", SampleConfig(n_points=100_000), fit_preset("default"),
+                   EvalConfig(n_near=10_000, n_uniform=10_000), steps_per_shape=37.1, min_steps=600),
+)
+get_preset = PRESETS.lookup
 
 
 # --------------------------------------------------------------------------- the run
@@ -146,7 +140,7 @@ def stage_fit_sdf(run: FitRun) -> bool:
     checkpoint = run.fit_dir / "checkpoint.pt"
     config = run.preset.fit_config(len(run.stems))
     stage = Stage("fit-sdf", {p.stem: p for p in run.sample_files}, {"fit": config.to_dict(), "stems": run.stems},
-                  {"fit": out}, code_version=CODE_VERSION)
+                  {"fit": out}, code=("pipeline.fit_sdf", stage_fit_sdf))
 
     def build():
         data = load_training_data(run.sample_files)
@@ -181,7 +175,7 @@ def stage_evaluate(run: FitRun) -> bool:
     out = run.fit_dir / "metrics.json"
     ev = run.preset.evaluation
     stage = Stage("evaluate", {"fit": run.fit_file, **run.mesh_paths}, {"evaluation": ev.to_dict()}, {"metrics": out},
-                  code_version=CODE_VERSION)
+                  code=("pipeline.evaluate_sdf", stage_evaluate))
 
     def build():
         from zoo.meshes import load_mesh
@@ -268,7 +262,7 @@ def add_stage(name: str, fn: StageFn, before: str = "package") -> None:
 # --------------------------------------------------------------------------- entry point
 
 
-def fit_category(category: str, data_dir: str | os.PathLike | None = None, preset: str = "quick",
+def fit_category(category: str, data_dir: str | os.PathLike | None = None, preset: str = "default",
                  out_dir: str | os.PathLike | None = None, work_dir: str | os.PathLike | None = None,
                  device: str = "cpu", progress: bool = True, log: Callable[[str], None] = print) -> FitRun:
     """Run every stage of :data:`STAGES` for ``category``; return the finished run (``run.model``, ``run.out_dir``).

@@ -8,7 +8,7 @@ a run resumed from a checkpoint (weights + Adam state + step) follows the same t
 uninterrupted one.
 
 Checkpoints are written atomically every ``checkpoint_every`` steps; a rerun with the same
-fingerprint (config and data) resumes from the last one.
+fingerprint (config, data and code) resumes from the last one (``pipeline.training``).
 
 Distributed: under ``torchrun`` (``WORLD_SIZE`` > 1) each process takes an equal slice of the
 step's shapes and DistributedDataParallel averages the gradients, so N processes follow the
@@ -19,32 +19,34 @@ same trajectory as one (gloo on CPU, nccl on CUDA)::
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
+from zoo.config import DictConfig
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path
 from zoo.neural import NeuralSDF, NeuralSDFConfig
 
-from .stages import reject_unknown_keys
-
-CODE_VERSION = "fit_sdf/1"
+from .presets import Presets
+from .stages import code_digest
+from .training import Checkpoint, cosine_factor, data_digest, halving_factor, run_fingerprint, set_learning_rates, train_steps
 
 
 # --------------------------------------------------------------------------- configuration
 
 
 @dataclass(frozen=True)
-class FitConfig:
+class FitConfig(DictConfig):
     """How to train; ``sdf`` holds the network sizes (:class:`zoo.neural.NeuralSDFConfig`)."""
+
+    _config_name = "fit config"
 
     sdf: NeuralSDFConfig = field(default_factory=NeuralSDFConfig)
     steps: int = 2000
@@ -71,16 +73,6 @@ class FitConfig:
             # unclamped, one huge target's squared error overflows float32 and the weights turn NaN
             raise InputError(f"clamp must be a positive finite distance (0.1 is usual), got {self.clamp}")
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["sdf"] = self.sdf.to_dict()
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "FitConfig":
-        reject_unknown_keys(cls, d, "fit config")
-        return cls(**d)
-
 
 # The decoder's activation: the smooth LeakyReLU of sharpness 100 (zoo.neural.activation). With
 # plain LeakyReLU the gradient jumps at every kink, and the KKT gap of eq. (12) stays positive even at
@@ -88,22 +80,18 @@ class FitConfig:
 # seen-mug triangles (mugs@1.2.0), against 3.9e-8 with beta = 100 (mugs@1.3.0), for +25% query time.
 SMOOTH_BETA = 100.0
 
-PRESETS = {
+PRESETS = Presets(
+    "fit",
     # seconds on this 2-core machine: a handful of shapes, enough to check the pipeline end to end
-    "quick": FitConfig(sdf=NeuralSDFConfig(n_codes=64, hidden=(64, 64), smooth_beta=SMOOTH_BETA), steps=100, shapes_per_step=4,
+    quick=FitConfig(sdf=NeuralSDFConfig(n_codes=64, hidden=(64, 64), smooth_beta=SMOOTH_BETA), steps=100, shapes_per_step=4,
                        points_per_shape=512, checkpoint_every=10, lr_decoder=3e-3, lr_codes=1e-2),
     # measured on 8 mugs (see the issue-3 report): 256 codes and a 256x3 decoder with clamped L1
     # beat the paper's 2.9M-parameter decoder, a 128x3 decoder and MSE at equal CPU time;
     # 2000 steps of 8 shapes x 2048 points is about 30-40 minutes on the shared 2-core machine.
-    "default": FitConfig(sdf=NeuralSDFConfig(n_codes=256, hidden=(256, 256, 256), smooth_beta=SMOOTH_BETA), steps=2000, shapes_per_step=8,
-                         points_per_shape=2048, checkpoint_every=50),
-}
-
-
-def preset(name: str) -> FitConfig:
-    if name not in PRESETS:
-        raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return PRESETS[name]
+    default=FitConfig(sdf=NeuralSDFConfig(n_codes=256, hidden=(256, 256, 256), smooth_beta=SMOOTH_BETA), steps=2000,
+                      shapes_per_step=8, points_per_shape=2048, checkpoint_every=50),
+)
+preset = PRESETS.lookup
 
 
 # --------------------------------------------------------------------------- data
@@ -120,11 +108,7 @@ class TrainingData:
     similarities: list
 
     def fingerprint(self) -> str:
-        h = hashlib.sha256()
-        h.update(json.dumps(self.stems).encode())
-        h.update(self.points.numpy().tobytes())
-        h.update(self.sdf.numpy().tobytes())
-        return h.hexdigest()
+        return data_digest(self.stems, self.points, self.sdf)
 
 
 def load_training_data(sample_files) -> TrainingData:
@@ -211,8 +195,8 @@ def sdf_loss(pred: torch.Tensor, target: torch.Tensor, config: FitConfig) -> tor
 def lr_factor(config: FitConfig, step: int) -> float:
     """Learning-rate multiplier at ``step``: halving every ``lr_halve_every`` steps, or cosine to 10%."""
     if config.lr_halve_every:
-        return 0.5 ** (step // config.lr_halve_every)
-    return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(step, config.steps) / config.steps))
+        return halving_factor(step, config.lr_halve_every)
+    return cosine_factor(min(step, config.steps) / config.steps, 0.1)
 
 
 def make_optimizer(model: NeuralSDF, config: FitConfig) -> torch.optim.Adam:
@@ -223,38 +207,9 @@ def make_optimizer(model: NeuralSDF, config: FitConfig) -> torch.optim.Adam:
     ])
 
 
-def set_learning_rates(optimizer: torch.optim.Optimizer, factor: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = group["base_lr"] * factor
-
-
-# --------------------------------------------------------------------------- checkpoints
-
-
-def run_fingerprint(config: FitConfig, data: TrainingData) -> str:
+def fit_fingerprint(config: FitConfig, data: TrainingData) -> str:
     """Identifies a training run: a checkpoint resumes only a run with the same fingerprint."""
-    h = hashlib.sha256(json.dumps({"code": CODE_VERSION, "config": config.to_dict()}, sort_keys=True).encode())
-    h.update(data.fingerprint().encode())
-    return h.hexdigest()
-
-
-def save_checkpoint(path: Path, model: NeuralSDF, optimizer, step: int, history: list, fingerprint: str) -> None:
-    """Write the training state atomically (a kill -9 mid-write leaves the previous checkpoint)."""
-    state = {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-             "history": history, "fingerprint": fingerprint}
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
-
-
-def load_checkpoint(path: Path, fingerprint: str, device) -> dict | None:
-    """The saved state when it belongs to this run, else None (a stale or unreadable file is ignored)."""
-    if not path.is_file():
-        return None
-    try:
-        state = torch.load(path, map_location=device, weights_only=False)
-    except Exception:  # a torn or foreign file: start afresh rather than fail
-        return None
-    return state if state.get("fingerprint") == fingerprint else None
+    return run_fingerprint(config.to_dict(), data.fingerprint(), code_digest([__name__]))
 
 
 # --------------------------------------------------------------------------- distributed
@@ -302,11 +257,11 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
     torch.manual_seed(config.seed)
     model = NeuralSDF(config.sdf, len(data.stems), torch.Generator().manual_seed(config.seed)).to(device)
     optimizer = make_optimizer(model, config)
-    fingerprint = run_fingerprint(config, data)
-    checkpoint = Path(checkpoint) if checkpoint else None
+    saver = Checkpoint(checkpoint or None, fit_fingerprint(config, data), config.checkpoint_every, config.steps,
+                       writer=rank == 0)
     history: list = []
     start = 0
-    state = load_checkpoint(checkpoint, fingerprint, device) if checkpoint else None
+    state = saver.load(device)
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -315,19 +270,19 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
             print(f"fit NeuralSDF: resuming from the checkpoint at step {start}/{config.steps}", file=sys.stderr, flush=True)
     trainer = wrap_distributed(model, world, device)
     t0 = time.perf_counter()
-    with progress_bar(progress and rank == 0) as bar:
-        task = bar.add_task("fit NeuralSDF", total=config.steps, completed=start)
-        for step in range(start, config.steps):
-            loss = train_step(trainer, model, optimizer, data, config, step, rank, world, device)
-            if (step + 1) % log_every == 0 or step + 1 == config.steps:
-                history.append((step + 1, loss))
-                if log is not None and rank == 0:
-                    log(step + 1, config.steps, loss, time.perf_counter() - t0, start)
-            bar.update(task, advance=1, description=f"fit NeuralSDF  loss {loss:.5f}")
-            if checkpoint and rank == 0 and ((step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps):
-                save_checkpoint(checkpoint, model, optimizer, step + 1, history, fingerprint)
-            if stop_after is not None and step + 1 >= stop_after:
-                break
+
+    def step(i: int) -> str:
+        loss = train_step(trainer, model, optimizer, data, config, i, rank, world, device)
+        if (i + 1) % log_every == 0 or i + 1 == config.steps:
+            history.append((i + 1, loss))
+            if log is not None and rank == 0:
+                log(i + 1, config.steps, loss, time.perf_counter() - t0, start)
+        return f"loss {loss:.5f}"
+
+    def training_state(done: int) -> dict:
+        return {"step": done, "model": model.state_dict(), "optimizer": optimizer.state_dict(), "history": history}
+
+    train_steps(start, config.steps, step, saver, training_state, progress and rank == 0, "fit NeuralSDF", stop_after)
     return FitResult(model, history, time.perf_counter() - t0, start)
 
 
@@ -361,13 +316,6 @@ def train_step(trainer, model: NeuralSDF, optimizer, data: TrainingData, config:
     return float(value)
 
 
-def progress_bar(enabled: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    TimeRemainingColumn(), disable=not enabled)
-
-
 def print_log(step: int, total: int, loss: float, elapsed: float, start: int) -> None:
     """A plain log line (for nohup logs, where a progress bar does not render)."""
     rate = (step - start) / max(elapsed, 1e-9)
@@ -393,7 +341,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m pipeline.fit_sdf", description=main.__doc__)
     parser.add_argument("samples", nargs="+", help="per-shape samples files (pipeline.samples)")
     parser.add_argument("--out", required=True, help="where rank 0 writes the trained state (torch.save)")
-    parser.add_argument("--preset", default="quick", choices=sorted(PRESETS))
+    parser.add_argument("--preset", default="default", choices=sorted(PRESETS),
+                        help="default: the shipped models' training; quick: a pipeline check for tests")
     parser.add_argument("--config", default=None, help="JSON of FitConfig fields overriding the preset")
     parser.add_argument("--checkpoint", default=None, help="checkpoint file to write and resume from")
     parser.add_argument("--device", default="cpu")

@@ -19,16 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-import zoo
 from zoo.errors import DataError
 from zoo.files import atomic_path, atomic_write_text, sha256_file
 from zoo.meshes import Similarity, load_mesh, normalise, up_rotation
 
 from .stages import Stage, run_stage
 
-# Bump when the normalised output would change for the same inputs and config; a new sdfzoo
-# version (zoo.meshes may have changed) also invalidates it.
-CODE_VERSION = f"normalise/1+sdfzoo{zoo.__version__}"
 FOLDER = "normalised"
 
 
@@ -65,7 +61,7 @@ def run_normalise(mesh_path: str | os.PathLike, work_dir: str | os.PathLike, ste
         inputs={"mesh": mesh_path},
         config={"stem": stem, "up": up_config(up)},
         outputs={"mesh": npz, "transform": meta},
-        code_version=CODE_VERSION,
+        code=(__name__,),  # with zoo.meshes and every project module it imports
     )
 
     def build():

@@ -19,12 +19,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 import zoo
+from zoo.config import DictConfig
 from zoo.errors import DataError, InputError, require
 from zoo.files import atomic_path
 from zoo.meshes import (
@@ -37,18 +38,20 @@ from zoo.meshes import (
 )
 
 from .normalise import read_normalised, run_normalise
-from .stages import Stage, reject_unknown_keys, run_stage
+from .presets import Presets
+from .progress import task_bar
+from .stages import Stage, run_stage
 
 SCHEMA_VERSION = 1
-# Bump when samples would change for the same inputs and config (a new sdfzoo version does too).
-CODE_VERSION = f"samples/1+sdfzoo{zoo.__version__}"
 FOLDER = "samples"
 _CHUNK_ROWS = 32_768
 
 
 @dataclass(frozen=True)
-class SampleConfig:
+class SampleConfig(DictConfig):
     """How many samples and where; see :func:`zoo.meshes.sample_sdf` for the meaning and defaults."""
+
+    _config_name = "sample config"
 
     n_points: int = DEFAULT_N_POINTS
     seed: int = 0
@@ -56,25 +59,9 @@ class SampleConfig:
     fractions: tuple[float, float, float] = DEFAULT_FRACTIONS
     padding: float = DEFAULT_PADDING
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["near_sigmas"], d["fractions"] = list(self.near_sigmas), list(self.fractions)
-        return d
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "SampleConfig":
-        reject_unknown_keys(cls, d, "sample config")
-        d = dict(d)
-        for key in ("near_sigmas", "fractions"):
-            if key in d:
-                d[key] = tuple(float(x) for x in d[key])
-        return cls(**d)
-
-
-PRESETS = {
-    "quick": SampleConfig(n_points=50_000),
-    "default": SampleConfig(),
-}
+PRESETS = Presets("sample", quick=SampleConfig(n_points=50_000), default=SampleConfig())
+preset = PRESETS.lookup
 
 
 @dataclass
@@ -171,7 +158,7 @@ def run_samples(normalised_npz: str | os.PathLike, work_dir: str | os.PathLike, 
         inputs={"mesh": normalised_npz, "transform": normalised_npz.with_suffix(".json")},
         config={"stem": stem, **config.to_dict()},
         outputs={"samples": out},
-        code_version=CODE_VERSION,
+        code=(__name__,),  # with zoo.meshes.sample_sdf and every project module it imports
     )
 
     def build():
@@ -207,19 +194,9 @@ def prepare_category(category, data_dir: str | os.PathLike | None, work_dir: str
     stems = cat.stems(split)
     paths = verify_meshes(cat, data_dir, stems)
     out: list[Path] = []
-    with _progress(progress) as bar:
-        task = bar.add_task(f"{cat.name}: normalise + sample", total=len(stems))
+    with task_bar(progress, f"{cat.name}: normalise + sample", total=len(stems)) as bar:
         for stem in stems:
-            bar.update(task, description=f"{cat.name}: {stem}")
+            bar.describe(f"{cat.name}: {stem}")
             out.append(prepare_mesh(paths[stem], work_dir, config, up=cat.entry(stem).up, stem=stem, force=force))
-            bar.advance(task)
+            bar.advance()
     return out
-
-
-def _progress(enabled: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    return Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
-        disable=not enabled,
-    )

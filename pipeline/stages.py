@@ -1,9 +1,14 @@
 """A tiny DVC-like stage runner: rerun a stage only when its inputs, config or code changed.
 
-A :class:`Stage` names its input files, its config (a JSON-able dict) and its output files.
-After a successful run, :func:`run_stage` writes a lock record beside the outputs::
+A :class:`Stage` names its input files, its config (a JSON-able dict), the code it runs and its
+output files. The code is hashed, not versioned by hand (:func:`code_digest`): each entry of
+``Stage.code`` is a module name, standing for the source of that module and of every module of
+``pipeline`` and ``zoo`` it imports (transitively), or a function, standing for its own source
+(a stage's build function defined beside other stages). Editing any of them reruns the stage,
+and, when its outputs change, the stages that read them. After a successful run,
+:func:`run_stage` writes a lock record beside the outputs::
 
-    {"stage": name, "code_version": "...", "config": {...}, "config_sha256": "...",
+    {"stage": name, "code": [modules...], "code_sha256": "...", "config": {...}, "config_sha256": "...",
      "inputs": {label: sha256}, "outputs": {label: sha256}}
 
 and the next :func:`run_stage` skips the build when a fresh record of the inputs and config
@@ -14,7 +19,10 @@ atomically, so an interruption at any point leaves a stage that simply reruns.
 
 from __future__ import annotations
 
+import ast
+import functools
 import hashlib
+import inspect
 import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,6 +32,75 @@ from zoo.errors import DataError, InputError
 from zoo.files import atomic_write_text, sha256_file
 
 LOCK_SUFFIX = ".lock.json"
+# The project's own packages, whose sources a stage's code digest covers; third-party code is not hashed.
+PROJECT_PACKAGES = ("pipeline", "zoo")
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# --------------------------------------------------------------------------- code digests
+
+
+def module_file(name: str, root: Path | None = None) -> Path | None:
+    """The source file of project module ``name`` ("pipeline.samples") under ``root`` (default the project's), or None."""
+    base = (root or ROOT).joinpath(*name.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _imports(path: Path, name: str, stamp: tuple) -> frozenset:
+    """Project modules imported anywhere in ``path`` (module ``name``), relative imports resolved;
+    ``stamp`` (mtime, size) makes an edited file parse again."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_bytes())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parent + ([node.module] if node.module else []))
+            found.add(base)
+            found.update(f"{base}.{alias.name}" for alias in node.names)  # `from . import x`: x may be a module
+    parents = {".".join(m.split(".")[:i]) for m in found for i in range(1, m.count(".") + 1)}  # importing runs them
+    return frozenset(m for m in found | parents if m.split(".")[0] in PROJECT_PACKAGES)
+
+
+def code_closure(modules, root: Path | None = None) -> dict[str, Path]:
+    """{module: source file} of ``modules`` and every project module they import, transitively."""
+    out: dict[str, Path] = {}
+    todo = list(modules)
+    while todo:
+        name = todo.pop()
+        path = None if name in out else module_file(name, root)
+        if path is None:
+            continue
+        out[name] = path
+        stat = path.stat()
+        todo.extend(_imports(path, name, (stat.st_mtime_ns, stat.st_size)))
+    return dict(sorted(out.items()))
+
+
+def code_digest(code, root: Path | None = None) -> str:
+    """sha256 of the code a stage runs: module names (with their project imports) and functions (their source)."""
+    h = hashlib.sha256()
+    names = [c for c in code if isinstance(c, str)]
+    for name, path in code_closure(names, root).items():
+        h.update(f"{name}\0".encode())
+        h.update(path.read_bytes())
+    for fn in (c for c in code if not isinstance(c, str)):
+        h.update(f"{fn.__module__}.{fn.__qualname__}\0{inspect.getsource(fn)}".encode())
+    return h.hexdigest()
+
+
+def _code_names(code) -> list[str]:
+    return [c if isinstance(c, str) else f"{c.__module__}.{c.__qualname__}" for c in code]
+
+
+# --------------------------------------------------------------------------- stages
 
 
 def canonical_json(obj) -> str:
@@ -40,18 +117,23 @@ def config_hash(config: dict) -> str:
 
 @dataclass
 class Stage:
-    """One cached step: inputs and outputs are {label: path}; ``lock`` defaults beside the first output."""
+    """One cached step: inputs and outputs are {label: path}; ``code`` the modules (names) and
+    functions it runs (see :func:`code_digest`); ``lock`` defaults beside the first output."""
 
     name: str
     inputs: dict[str, Path]
     config: dict
     outputs: dict[str, Path]
-    code_version: str = "1"
+    code: tuple = ()
     lock: Path | None = field(default=None)
 
     def __post_init__(self):
         if not self.outputs:
             raise InputError(f"stage {self.name!r} declares no outputs; a stage must produce at least one file")
+        if not self.code:
+            raise InputError(f"stage {self.name!r} names no code; pass code=(module names or functions it runs) "
+                             "so that editing them reruns it")
+        self.code = tuple(self.code)
         self.inputs = {k: Path(v) for k, v in self.inputs.items()}
         self.outputs = {k: Path(v) for k, v in self.outputs.items()}
         if self.lock is None:
@@ -61,7 +143,7 @@ class Stage:
 
 
 def input_record(stage: Stage) -> dict:
-    """What determines the outputs: code version, config and input hashes (DataError for a missing input)."""
+    """What determines the outputs: code digest, config and input hashes (DataError for a missing input)."""
     hashes = {}
     for label, path in stage.inputs.items():
         if not path.is_file():
@@ -69,7 +151,8 @@ def input_record(stage: Stage) -> dict:
         hashes[label] = sha256_file(path)
     return {
         "stage": stage.name,
-        "code_version": stage.code_version,
+        "code": _code_names(stage.code),
+        "code_sha256": code_digest(stage.code),
         "config": json.loads(canonical_json(stage.config)),
         "config_sha256": config_hash(stage.config),
         "inputs": hashes,
@@ -90,7 +173,7 @@ def is_up_to_date(stage: Stage, record: dict | None = None) -> bool:
     if lock is None:
         return False
     record = input_record(stage) if record is None else record
-    if any(lock.get(k) != record[k] for k in ("stage", "code_version", "config_sha256", "inputs")):
+    if any(lock.get(k) != record[k] for k in ("stage", "code_sha256", "config_sha256", "inputs")):
         return False
     recorded = lock.get("outputs", {})
     if set(recorded) != set(stage.outputs):
@@ -114,9 +197,3 @@ def run_stage(stage: Stage, build: Callable[[], None], force: bool = False) -> b
     atomic_write_text(stage.lock, json.dumps(record, indent=1, sort_keys=True) + "\n")
     return True
 
-
-def reject_unknown_keys(config_class, d: dict, what: str) -> None:
-    """Raise InputError naming the keys of ``d`` that the dataclass ``config_class`` does not have."""
-    unknown = set(d) - set(config_class.__dataclass_fields__)
-    if unknown:
-        raise InputError(f"unknown {what} keys {sorted(unknown)}; known: {sorted(config_class.__dataclass_fields__)}")

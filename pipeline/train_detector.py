@@ -23,25 +23,30 @@ Vertex features depend only on the vertices, so they are read precomputed from t
 dataset (pipeline.triangles), and the SDF is evaluated only at the predicted points.
 
 Checkpoints (weights, optimiser, step, RNG, history) are written atomically every
-``checkpoint_every`` steps; a rerun with the same config and training data resumes from the last one.
+``checkpoint_every`` steps; a rerun with the same config, training data and code resumes from the
+last one (``pipeline.training``).
 """
 
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
 
+from zoo.config import DictConfig
 from zoo.detector import AmortizedDetector
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, perimeter
+
+from .presets import Presets
+from .stages import code_digest
+from .training import Checkpoint, cosine_factor, data_digest, run_fingerprint, set_learning_rates, train_steps
 
 CHECKPOINT = "checkpoint.pt"
 WEIGHTS = "detector.safetensors"
@@ -52,8 +57,10 @@ CONFIG = "detector.json"
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(DictConfig):
     """Everything that determines a training run (hashable into the stage lock)."""
+
+    _config_name = "train config"
 
     steps: int = 1500
     batch_size: int = 1024
@@ -72,18 +79,6 @@ class TrainConfig:
     validation_size: int = 2048
     detector: dict = field(default_factory=lambda: AmortizedDetector().config())
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["betas"] = list(self.betas)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        d = dict(d)
-        if "betas" in d:
-            d["betas"] = tuple(d["betas"])
-        return cls(**d)
-
 
 # lr 1e-4 (the paper's) is far too slow for a CPU budget of minutes; 3e-3 with cosine decay
 # and clipping trained fastest and stably on the stand-in and on mugs (see the report).
@@ -91,17 +86,13 @@ class TrainConfig:
 # mean optimality was 6.1e-3 against 1.1e-2 to 1.4e-2 for the softmax, sparsemax and grid heads.
 QUADRATIC = {**AmortizedDetector().config(), "output": "quadratic", "vertex_sdf": True, "hidden": 64}
 _CURVATURE_ONLY = dict(detector=QUADRATIC, lambda_curvature=1.0, use_op_loss=False, use_min_loss=False, lr=2e-3)
-PRESETS = {
-    "quick": TrainConfig(steps=40, batch_size=256, checkpoint_every=20, validate_every=40, validation_size=256, **_CURVATURE_ONLY),
-    "default": TrainConfig(steps=4000, checkpoint_every=500, **_CURVATURE_ONLY),
-    "paper": TrainConfig(),  # the paper's loss on the softmax head (conditioned on z_tri), 1500 steps
-}
-
-
-def preset(name: str, **overrides) -> TrainConfig:
-    if name not in PRESETS:
-        raise InputError(f"unknown training preset {name!r}; choose one of {sorted(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
+PRESETS = Presets(
+    "training",
+    quick=TrainConfig(steps=40, batch_size=256, checkpoint_every=20, validate_every=40, validation_size=256, **_CURVATURE_ONLY),
+    default=TrainConfig(steps=4000, checkpoint_every=500, **_CURVATURE_ONLY),
+    paper=TrainConfig(),  # the paper's loss on the softmax head (conditioned on z_tri), 1500 steps
+)
+preset = PRESETS.lookup
 
 
 # Steps of the variant that trains the curvature head on L_op + L_min (second order, ~20x a step of L_curv).
@@ -291,30 +282,30 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
     """
     _check_config(config)
     torch.manual_seed(config.seed)
-    fingerprint = data_fingerprint(data) if out_dir is not None else None  # of the data as given, wherever they live
+    out = Path(out_dir) if out_dir is not None else None
+    # of the data as given, wherever they live
+    saver = Checkpoint(out / CHECKPOINT if out is not None else None,
+                       detector_fingerprint(config, data) if out is not None else "", config.checkpoint_every, config.steps)
     if device is not None:
         data = data.to(device)
     detector = AmortizedDetector.from_config(config.detector).to(data.vertices.device)
     if init is not None:
         detector.load_state_dict(init.state_dict())
     detector.fit_input_statistics(data.features)
-    optimiser = torch.optim.Adam(detector.parameters(), lr=config.lr, betas=config.betas)
+    optimiser = torch.optim.Adam([{"params": detector.parameters(), "base_lr": config.lr}], lr=config.lr, betas=config.betas)
     history = {"step": [], "loss": [], "l_op": [], "l_min": [], "validation": [], "seconds": 0.0}
     generator = torch.Generator().manual_seed(config.seed)  # kept in checkpoints for any future random use
-    start = 0
-    out = Path(out_dir) if out_dir is not None else None
-    if out is not None:
-        start, history = _resume(out, config, detector, optimiser, generator, history, fingerprint)
+    start, history = _resume(saver, detector, optimiser, generator, history)
     if config.lambda_curvature > 0:
         data = data.with_edge_curvatures()
     sdf_losses = config.use_op_loss or config.use_min_loss
     validation_rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(config.seed + 1))[: config.validation_size]
     validation_rows = validation_rows.to(data.vertices.device)
     t0 = time.perf_counter() - history["seconds"]
-    bar = _progress(progress, config.steps, start)
-    for step in range(start, config.steps):
+
+    def step_fn(step: int) -> str:
         rows = batch_rows(len(data), config.batch_size, step, config.seed).to(data.vertices.device)
-        _set_lr(optimiser, config, step)
+        set_learning_rates(optimiser, lr_factor(config, step))
         if sdf_losses:
             _, l_op, l_min = batch_losses(detector, data, rows, config.create_graph)
         else:  # the SDF at the predicted points is not needed: skip its (second-order) pass
@@ -333,10 +324,14 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
             if log:
                 log(f"step {step + 1}: {history['validation'][-1]}")
         history["seconds"] = time.perf_counter() - t0
-        if out is not None and ((step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps):
-            save_checkpoint(out, config, detector, optimiser, generator, step + 1, history, fingerprint)
-        bar.advance(loss=history["loss"][-1])
-    bar.close()
+        return f"loss {history['loss'][-1]:.3g}"
+
+    def training_state(done: int) -> dict:
+        return {"config": config.to_dict(), "step": done, "detector": detector.state_dict(),
+                "optimiser": optimiser.state_dict(), "generator": generator.get_state(),
+                "torch_rng": torch.get_rng_state(), "history": history}
+
+    train_steps(start, config.steps, step_fn, saver, training_state, progress, "train detector")
     if out is not None:
         save_detector(out, detector, extra={"train": config.to_dict(), "history": _summary(history)})
     return detector, history
@@ -384,12 +379,9 @@ def _epoch_order(n: int, seed: int, epoch: int) -> torch.Tensor:
     return torch.randperm(n, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
 
 
-def _set_lr(optimiser, config: TrainConfig, step: int) -> None:
+def lr_factor(config: TrainConfig, step: int) -> float:
     """Cosine decay from lr to lr * lr_final_fraction over the run."""
-    t = step / max(1, config.steps - 1)
-    scale = config.lr_final_fraction + (1 - config.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * t))
-    for group in optimiser.param_groups:
-        group["lr"] = config.lr * scale
+    return cosine_factor(step / max(1, config.steps - 1), config.lr_final_fraction)
 
 
 def _finite_gradients(module: torch.nn.Module) -> bool:
@@ -414,43 +406,18 @@ def _summary(history: dict) -> dict:
 def data_fingerprint(data: TrainingData) -> str:
     """sha256 of the training triangles, features, shape indices and vertex distances: a checkpoint
     resumes only a run on the same data (the features change with the NeuralSDF they come from)."""
-    h = hashlib.sha256()
-    for t in (data.vertices, data.features, data.shape_index, data.vertex_sdf):
-        if t is not None:
-            t = t.detach().cpu().contiguous()
-            h.update(f"{t.dtype}{tuple(t.shape)}".encode())
-            h.update(t.numpy().tobytes())
-    return h.hexdigest()
+    return data_digest(data.vertices, data.features, data.shape_index, data.vertex_sdf)
 
 
-def save_checkpoint(out: Path, config: TrainConfig, detector, optimiser, generator, step: int, history: dict,
-                    data: str | None = None) -> None:
-    """The training state, atomically; ``data`` is the :func:`data_fingerprint` of the training data."""
-    state = {
-        "config": config.to_dict(),
-        "data": data,
-        "step": step,
-        "detector": detector.state_dict(),
-        "optimiser": optimiser.state_dict(),
-        "generator": generator.get_state(),
-        "torch_rng": torch.get_rng_state(),
-        "history": history,
-    }
-    with atomic_path(Path(out) / CHECKPOINT) as tmp:
-        torch.save(state, tmp)
+def detector_fingerprint(config: TrainConfig, data: TrainingData) -> str:
+    """Identifies a training run (config, data, this module's code): what a checkpoint must match to resume."""
+    return run_fingerprint(config.to_dict(), data_fingerprint(data), code_digest([__name__]))
 
 
-def _resume(out: Path, config: TrainConfig, detector, optimiser, generator, history, data: str | None = None):
-    path = out / CHECKPOINT
-    if not path.is_file():
-        return 0, history
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)  # a GPU run's checkpoint resumes anywhere
-    except Exception as exc:  # an unreadable checkpoint: start over rather than crash
-        raise DataError(f"cannot read checkpoint {path} ({exc}); delete it to start training afresh") from exc
-    if state.get("config") != json.loads(json.dumps(config.to_dict())) or state.get("data") != data:
-        # a different config or other training data (e.g. a refitted NeuralSDF): the checkpoint does not
-        # apply. Resuming it would return the old run's weights, trained on the old data, as this run's.
+def _resume(saver: Checkpoint, detector, optimiser, generator, history: dict) -> tuple[int, dict]:
+    """(first step, history) of this run: from its checkpoint when there is one, else (0, ``history``)."""
+    state = saver.load("cpu")  # a GPU run's checkpoint resumes anywhere
+    if state is None:
         return 0, history
     detector.load_state_dict(state["detector"])
     optimiser.load_state_dict(state["optimiser"])
@@ -485,35 +452,6 @@ def load_detector(directory) -> AmortizedDetector:
     return detector.eval()
 
 
-# --------------------------------------------------------------------------- progress
-
-
-class _Progress:
-    """A rich progress bar, or nothing when disabled."""
-
-    def __init__(self, enabled: bool, total: int, done: int):
-        self.bar = None
-        if enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            self.bar = Progress(TextColumn("train detector"), BarColumn(), MofNCompleteColumn(),
-                                TextColumn("loss {task.fields[loss]:.3g}"), TimeRemainingColumn())
-            self.bar.start()
-            self.task = self.bar.add_task("train", total=total, completed=done, loss=float("nan"))
-
-    def advance(self, loss: float) -> None:
-        if self.bar is not None:
-            self.bar.update(self.task, advance=1, loss=loss)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-
-
-def _progress(enabled: bool, total: int, done: int) -> _Progress:
-    return _Progress(enabled, total, done)
-
-
 # --------------------------------------------------------------------------- the fit-category stage
 
 
@@ -536,7 +474,7 @@ def stage_train_detector(run) -> bool:
     config = preset(run.preset.name if run.preset.name in PRESETS else "default")
     out = run.work_dir / "detector" / run.preset.name
     stage = Stage("train-detector", {"triangles": run.triangles_file, "fit": run.fit_file}, {"train": config.to_dict()},
-                  {"weights": out / WEIGHTS, "config": out / CONFIG}, code_version="train_detector/1")
+                  {"weights": out / WEIGHTS, "config": out / CONFIG}, code=(__name__,))
 
     def build():
         data = training_data_from_file(run.triangles_file, run.model, run.stems)

@@ -30,15 +30,19 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from zoo.config import DictConfig
 from zoo.errors import DataError, InputError, require
 from zoo.files import atomic_path
 from zoo.geometry import bary_to_points
+
+from .presets import Presets
+from .progress import task_bar
 
 SCHEMA_VERSION = 1
 ARRAYS = ("vertices", "features", "vertex_sdf", "bary", "min_sdf", "shape_index")
@@ -46,8 +50,10 @@ REFERENCE_ARRAYS = ("rows", "bary", "min_sdf")
 
 
 @dataclass(frozen=True)
-class TriangleConfig:
+class TriangleConfig(DictConfig):
     """How many triangles per shape and how they are labelled."""
+
+    _config_name = "triangle config"
 
     n_per_shape: int = 100_000  # the paper's count
     fw_iters: int = 100
@@ -57,27 +63,18 @@ class TriangleConfig:
     chunk: int = 8192  # triangles labelled per batch (bounds memory)
     sampler_batch: int = 16384  # candidates per rejection round of the sampler
 
-    def to_dict(self) -> dict:
-        return asdict(self)
 
-
-PRESETS = {
-    "quick": TriangleConfig(n_per_shape=256, n_reference=32, reference_resolution=16, sampler_batch=4096),
+PRESETS = Presets(
+    "triangle",
+    quick=TriangleConfig(n_per_shape=256, n_reference=32, reference_resolution=16, sampler_batch=4096),
     # CPU-sized; "paper" is 100k per shape. The detector is data-bound: in a trial on 54 mugs x 500,
     # half of the triangles gave a mean optimality on fresh ones of 5.7e-3 against 4.2e-3 for all, so
     # the default takes 1500 per shape (81k for the mugs: ~20 min of certifying and labelling by
     # FW-100 on one core of the shared machine).
-    "default": TriangleConfig(n_per_shape=1500, n_reference=50, sampler_batch=4096),
-    "paper": TriangleConfig(),
-}
-
-
-def preset(name: str, **overrides) -> TriangleConfig:
-    from dataclasses import replace
-
-    if name not in PRESETS:
-        raise InputError(f"unknown triangle preset {name!r}; choose one of {sorted(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
+    default=TriangleConfig(n_per_shape=1500, n_reference=50, sampler_batch=4096),
+    paper=TriangleConfig(),
+)
+preset = PRESETS.lookup
 
 
 def shape_seed(seed: int, index: int) -> int:
@@ -172,13 +169,13 @@ def sample_triangle_dataset(shapes, out_path, config: TriangleConfig = TriangleC
     names = [name for name, _ in shapes]
     tag = _run_tag(names, config, provenance)
     chunks = []
-    with _progress(progress, len(shapes)) as advance:
+    with task_bar(progress, "sample triangles", len(shapes)) as bar:
         for index, (name, shape) in enumerate(shapes):
             path = chunk_dir / f"shape_{index:04d}.h5"
             if not _chunk_is_current(h5py, path, tag):
                 _write_chunk(h5py, path, shape_triangles(shape, index, config, sampler, device), tag)
             chunks.append(path)
-            advance(name)
+            bar.advance(description=f"sample triangles {name}")
     meta = {
         "config": config.to_dict(),
         "shape_seeds": [shape_seed(config.seed, i) for i in range(len(shapes))],
@@ -280,28 +277,6 @@ def _version() -> str:
     return zoo.__version__
 
 
-class _progress:
-    """Context manager yielding ``advance(name)``: a rich bar over shapes, or a no-op."""
-
-    def __init__(self, enabled: bool, total: int):
-        self.enabled, self.total = enabled, total
-
-    def __enter__(self):
-        if not self.enabled:
-            return lambda name: None
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-        self.bar = Progress(TextColumn("sample triangles {task.fields[shape]}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-        self.bar.start()
-        task = self.bar.add_task("shapes", total=self.total, shape="")
-        return lambda name: self.bar.update(task, advance=1, shape=name)
-
-    def __exit__(self, *exc):
-        if self.enabled:
-            self.bar.stop()
-        return False
-
-
 def relabel_triangle_dataset(in_path, shapes, out_path, config: TriangleConfig = TriangleConfig(), progress: bool = True) -> Path:
     """Re-label a dataset's triangles for a new fit of the same shapes; -> ``out_path``.
 
@@ -318,7 +293,7 @@ def relabel_triangle_dataset(in_path, shapes, out_path, config: TriangleConfig =
     if names != old["shapes"]:
         raise DataError(f"{in_path} holds shapes {old['shapes'][:3]}..., not {names[:3]}...; pass the same shapes in the same order")
     parts = []
-    with _progress(progress, len(shapes)) as advance:
+    with task_bar(progress, "relabel triangles", len(shapes)) as bar:
         for index, (name, shape) in enumerate(shapes):
             tri = old["vertices"][old["shape_index"] == index]
             sdf = shape.normalised
@@ -335,7 +310,7 @@ def relabel_triangle_dataset(in_path, shapes, out_path, config: TriangleConfig =
                 "bary": labels["bary"][keep.numpy()], "min_sdf": labels["min_sdf"][keep.numpy()],
                 "shape_index": np.full(tri.shape[0], index, dtype=np.int32), "reference": reference_labels(sdf, tri, config),
             })
-            advance(name)
+            bar.advance(description=f"relabel triangles {name}")
     chunk_dir = Path(out_path).with_name(Path(out_path).name + ".chunks")
     tag = _run_tag(names, config)
     paths = []
@@ -361,7 +336,7 @@ def stage_sample_triangles(run) -> bool:
     config = preset(run.preset.name if run.preset.name in PRESETS else "default")
     out = run.work_dir / "triangles" / f"{run.preset.name}.h5"
     stage = Stage("sample-triangles", {"fit": run.fit_file}, {"triangles": config.to_dict(), "stems": run.stems},
-                  {"triangles": out}, code_version=f"triangles/{SCHEMA_VERSION}")
+                  {"triangles": out}, code=(__name__,))
 
     def build():
         shapes = [(s, run.model.shape(s)) for s in run.stems]

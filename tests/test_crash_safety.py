@@ -441,3 +441,23 @@ def test_triangle_chunks_of_another_fit_are_not_reused(tmp_path):
     resumed, fresh = read_triangle_dataset(out), read_triangle_dataset(tmp_path / "fresh.h5")
     for key in ("vertices", "features", "bary", "min_sdf"):
         assert torch.equal(resumed[key], fresh[key]), key
+
+
+def test_a_torn_detector_checkpoint_warns_and_training_starts_afresh(tmp_path):
+    """The detector follows the same rule as the NeuralSDF fit (pipeline.training): an unreadable
+    checkpoint used to raise DataError here and be silently ignored there; now both warn and restart."""
+    from dataclasses import replace
+
+    from pipeline.train_detector import preset, train
+    from pipeline.training import CheckpointWarning
+
+    base = preset("quick")
+    config = replace(base, steps=6, batch_size=8, checkpoint_every=3, validate_every=100, validation_size=8,
+                     detector={**base.detector, "feature_dim": 4, "hidden": 8, "weight_hidden": 4})
+    fresh, fresh_history = train(_tiny_detector_data(0), config, progress=False)
+    (tmp_path / "checkpoint.pt").write_bytes(b"PK\x03\x04 torn")
+    with pytest.warns(CheckpointWarning, match="cannot be read"):
+        again, history = train(_tiny_detector_data(0), config, out_dir=tmp_path, progress=False)
+    assert history["loss"] == fresh_history["loss"]
+    for (k, a), b in zip(fresh.state_dict().items(), again.state_dict().values()):
+        assert torch.equal(a, b), k

@@ -42,7 +42,8 @@ def torchrun() -> list[str] | None:
 def test_two_processes_agree_with_one(tmp_path):
     files = write_spheres(tmp_path)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    common = ["-m", "pipeline.fit_sdf", *files, "--config", json.dumps(CONFIG), "--threads", "1", "--no-progress"]
+    common = ["-m", "pipeline.fit_sdf", *files, "--preset", "quick", "--config", json.dumps(CONFIG), "--threads", "1",
+              "--no-progress"]
     two = subprocess.run([*torchrun(), "--standalone", "--nproc_per_node", "2", *common, "--out", str(tmp_path / "two.pt")],
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert two.returncode == 0, two.stderr[-3000:]

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from pipeline.fit_sdf import FitConfig, fit_sdf, stack_samples, step_batch
+from pipeline.training import CheckpointWarning
 from real_meshes import SKIP_REASON, zoo_data
 from zoo.neural import NeuralSDFConfig
 
@@ -65,8 +66,25 @@ def test_resume_from_checkpoint_matches_an_uninterrupted_run(tmp_path):
 def test_a_checkpoint_of_another_config_is_ignored(tmp_path):
     data = sphere_data()
     fit_sdf(data, replace(TINY, steps=10), tmp_path / "c.pt", progress=False)
-    other = fit_sdf(data, replace(TINY, steps=10, seed=4), tmp_path / "c.pt", progress=False)
+    with pytest.warns(CheckpointWarning, match="another run"):  # not reused, and not silently
+        other = fit_sdf(data, replace(TINY, steps=10, seed=4), tmp_path / "c.pt", progress=False)
     assert other.resumed_from == 0
+
+
+def test_a_torn_checkpoint_warns_and_training_starts_afresh(tmp_path):
+    """The one rule of pipeline.training for both training stages: an unreadable checkpoint is not
+    resumed; a warning says so and the run restarts from step 0 (and ends where a fresh run does)."""
+    data = sphere_data()
+    fresh = fit_sdf(data, replace(TINY, steps=10), progress=False)
+    torn = tmp_path / "torn.pt"
+    fit_sdf(data, replace(TINY, steps=10), torn, progress=False)
+    torn.write_bytes(torn.read_bytes()[:100])  # a half-written file (what a non-atomic writer would leave)
+    with pytest.warns(CheckpointWarning, match="cannot be read"):
+        again = fit_sdf(data, replace(TINY, steps=10), torn, progress=False)
+    assert again.resumed_from == 0 and again.history == fresh.history
+    for (k, v), w in zip(fresh.model.state_dict().items(), again.model.state_dict().values()):
+        assert torch.equal(v, w), k
+    assert fit_sdf(data, replace(TINY, steps=10), torn, progress=False).resumed_from == 10  # rewritten whole
 
 
 

@@ -102,6 +102,25 @@ def test_prepare_mesh_skips_when_up_to_date_and_reruns_on_change(box_file, tmp_p
     assert read_samples(path).similarity.scale == pytest.approx(1 / 3) == meta["similarity"]["scale"]
 
 
+def test_an_edit_of_the_samples_code_reruns_samples_but_not_normalise(box_file, tmp_path, monkeypatch):
+    """Stage locks record a digest of the code the stage runs: editing pipeline/samples.py (simulated by
+    changing its recorded digest) reruns the samples stage; the normalise stage, which does not import it, skips."""
+    import pipeline.stages as stages
+
+    work = tmp_path / "work"
+    path = prepare_mesh(box_file, work, SMALL)
+    npz = work / "normalised" / "crate.npz"
+    stamps = path.stat().st_mtime_ns, npz.stat().st_mtime_ns
+    prepare_mesh(box_file, work, SMALL)
+    assert (path.stat().st_mtime_ns, npz.stat().st_mtime_ns) == stamps  # unchanged code: both skipped
+    original = stages.code_digest
+    monkeypatch.setattr(stages, "code_digest", lambda code, root=None: original(code, root) + (
+        "+edited" if "pipeline.samples" in stages.code_closure([c for c in code if isinstance(c, str)], root) else ""))
+    prepare_mesh(box_file, work, SMALL)
+    assert path.stat().st_mtime_ns != stamps[0] and npz.stat().st_mtime_ns == stamps[1]
+    assert json.loads(Path(str(path) + ".lock.json").read_text())["code_sha256"].endswith("+edited")
+
+
 def test_a_corrupt_samples_file_is_rebuilt(box_file, tmp_path):
     work = tmp_path / "work"
     path = prepare_mesh(box_file, work, SMALL)

@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from pipeline.stages import Stage, canonical_json, config_hash, is_up_to_date, run_stage
+import pipeline.stages as stages
+from pipeline.stages import Stage, canonical_json, code_closure, code_digest, config_hash, is_up_to_date, run_stage
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_write_text
 
@@ -18,8 +19,8 @@ def files(tmp_path):
     return src, tmp_path / "out" / "result.txt"
 
 
-def make_stage(src, out, config=None, code_version="1"):
-    return Stage("upper", {"text": src}, config or {"repeat": 2}, {"result": out}, code_version=code_version)
+def make_stage(src, out, config=None, code=("pipeline.stages",)):
+    return Stage("upper", {"text": src}, config or {"repeat": 2}, {"result": out}, code=code)
 
 
 def upper(stage, calls):
@@ -52,7 +53,14 @@ def test_a_changed_input_reruns(files):
     assert out.read_text() == "BYEBYE"
 
 
-def test_a_changed_config_or_code_version_reruns(files):
+def upper_edited(stage, calls):  # the same build as upper, edited: its source differs
+    def build():
+        calls.append(1)
+        atomic_write_text(stage.outputs["result"], (stage.inputs["text"].read_text().upper()) * stage.config["repeat"])
+    return build
+
+
+def test_a_changed_config_or_code_reruns(files):
     src, out = files
     calls = []
     first = make_stage(src, out)
@@ -60,9 +68,48 @@ def test_a_changed_config_or_code_version_reruns(files):
     changed = make_stage(src, out, {"repeat": 3})
     assert run_stage(changed, upper(changed, calls)) is True
     assert out.read_text() == "HELLO" * 3
-    bumped = make_stage(src, out, {"repeat": 3}, code_version="2")
-    assert run_stage(bumped, upper(bumped, calls)) is True
+    edited = make_stage(src, out, {"repeat": 3}, code=("pipeline.stages", upper_edited))
+    assert run_stage(edited, upper_edited(edited, calls)) is True
+    assert run_stage(edited, upper_edited(edited, calls)) is False
     assert len(calls) == 3
+
+
+def write_modules(root, modules: dict):
+    for name, text in modules.items():
+        path = root.joinpath(*name.split(".")).with_suffix(".py")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+
+def test_editing_a_module_the_stage_imports_reruns_it_and_nothing_else_does(files, tmp_path, monkeypatch):
+    """The lock holds the digest of the stage's module and of the project modules it imports, transitively."""
+    src, out = files
+    root = tmp_path / "project"
+    write_modules(root, {"pipeline.__init__": "", "zoo.__init__": "from .geometry import area\n",
+                         "zoo.geometry": "def area(): return 1\n", "zoo.unrelated": "X = 1\n",
+                         "pipeline.shout": "import numpy\nfrom . import helper\n",
+                         "pipeline.helper": "def f():\n    from zoo import area\n    return area()\n"})
+    assert set(code_closure(["pipeline.shout"], root)) == {"pipeline", "pipeline.shout", "pipeline.helper", "zoo", "zoo.geometry"}
+    monkeypatch.setattr(stages, "ROOT", root)
+    calls = []
+    stage = make_stage(src, out, code=("pipeline.shout",))
+    assert run_stage(stage, upper(stage, calls)) is True
+    assert run_stage(stage, upper(stage, calls)) is False  # unchanged: skipped
+    write_modules(root, {"zoo.unrelated": "X = 2\n"})  # not imported by the stage
+    assert run_stage(stage, upper(stage, calls)) is False
+    write_modules(root, {"zoo.geometry": "def area(): return 2  # edited\n"})  # imported two steps away
+    assert run_stage(stage, upper(stage, calls)) is True
+    assert run_stage(stage, upper(stage, calls)) is False
+    assert len(calls) == 2
+
+
+def test_the_project_stages_hash_what_they_import():
+    assert {"pipeline.samples", "pipeline.normalise", "pipeline.stages", "zoo.meshes"} <= set(code_closure(["pipeline.samples"]))
+    assert {"pipeline.training", "zoo.neural"} <= set(code_closure(["pipeline.fit_sdf"]))
+    assert code_digest(["pipeline.samples"]) == code_digest(["pipeline.samples"])
+    assert code_digest(["pipeline.samples"]) != code_digest(["pipeline.fit_sdf"])
+    with pytest.raises(InputError, match="names no code"):
+        Stage("anonymous", {}, {}, {"x": "x.txt"})
 
 
 @pytest.mark.parametrize("damage", ["delete", "edit"])
