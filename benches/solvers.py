@@ -14,17 +14,16 @@ import os
 import platform
 import statistics
 import time
-from contextlib import nullcontext
 from pathlib import Path
 from typing import Callable
 
 import torch
 
 import zoo
+from pipeline.progress import progress_bar
+from pipeline.triangle_sampling import sample_constrained_triangles
 from zoo import solvers
 from zoo.files import atomic_write_text
-
-from pipeline.triangle_sampling import sample_constrained_triangles
 
 FW_ITERS = (1, 2, 5, 10, 20, 50, 100)
 RESULT_NAME = "solvers.json"
@@ -80,13 +79,12 @@ def measure_solvers(
     reference_resolution: int = 32, reference_polish_iters: int = 100, progress: bool = True,
 ) -> dict:
     """The benchmark's report as a dict (see :func:`run_solver_benchmark`)."""
-    with _progress(progress) as bar:
-        task = bar.add_task("sampling triangles", total=None) if bar else None
+    with progress_bar(progress) as bar:
+        task = bar.add_task("sampling triangles", total=None)
         started = time.perf_counter()
         tri = sample_constrained_triangles(sdf, n_triangles, seed=seed)
         sampling_s = time.perf_counter() - started
-        if bar:
-            bar.update(task, total=1, completed=1)
+        bar.update(task, total=1, completed=1)
         tri64 = tri.double()
         batches = list(torch.split(torch.arange(tri.shape[0]), batch))
 
@@ -208,21 +206,19 @@ def _run_batched(fn, tri, batches, repeats, bar, label):
     (all batches, plus re-runs of the first batch until ``repeats`` runs are timed), and the most
     iterations any run used.
     """
-    task = bar.add_task(label, total=len(batches) + max(0, repeats - len(batches))) if bar else None
+    task = bar.add_task(label, total=len(batches) + max(0, repeats - len(batches)))
     outs, times = [], []
     for idx in batches:
         t = tri[idx]
         bary, iters, seconds = _timed(fn, t)
         outs.append(bary)
         times.append((seconds, t.shape[0], iters))
-        if bar:
-            bar.advance(task)
+        bar.advance(task)
     for _ in range(repeats - len(batches)):
         t = tri[batches[0]]
         _, iters, seconds = _timed(fn, t)
         times.append((seconds, t.shape[0], iters))
-        if bar:
-            bar.advance(task)
+        bar.advance(task)
     return torch.cat(outs), times, max(i for _, _, i in times)
 
 
@@ -285,11 +281,3 @@ def _cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def _progress(enabled: bool):
-    if not enabled:
-        return nullcontext(None)
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
