@@ -1,9 +1,11 @@
 """`zoo demo`: a mug hung on a rack, its contacts, and error against run time.
 
-Needs nothing outside the package: the rack is procedural and the mug is a shape of the
-``mugs`` model shipped with sdfzoo, loaded by name. The pose that hangs the mug by its handle is
-found from the SDF itself (:func:`hanging_pose`). Where no ``mugs`` model is packaged (a
-checkout before the first training run), the demo says so and hangs an analytic ring instead.
+Needs nothing outside the package: the scene is the bundled file ``scenes/demo-mug-rack.toml``
+(also ``zoo collide demo-mug-rack``): the rack is procedural and the mug is a shape of the ``mugs``
+model shipped with sdfzoo, loaded by name. The pose written in that file, which hangs the mug by its
+handle, was found from the SDF itself (:func:`mug_rack_scene`, :func:`hanging_pose`). Where no
+``mugs`` model is packaged (a checkout before the first training run), the demo says so and hangs
+an analytic ring instead.
 """
 
 from __future__ import annotations
@@ -15,10 +17,10 @@ import torch
 
 import zoo
 from zoo.errors import InputError, ZooError
-
 from zoo.parts import make_part
-from zoo.scenes import Scene, run_scene, scene_from_dict, write_outputs
+from zoo.scenes import Scene, load_scene, run_scene, scene_from_dict, write_outputs
 
+DEMO_SCENE = "demo-mug-rack"  # scenes/demo-mug-rack.toml: mug_rack_scene(zoo.load("mugs")), written down
 MUG_MODEL = "mugs"
 PREFERRED_MUGS = ("hoi4d_mug_0001",)  # scanned mugs in metres; any other shape works too
 RACK = {"height": 0.30, "post_radius": 0.012, "peg_length": 0.09, "peg_radius": 0.006, "peg_height": 0.20,
@@ -29,10 +31,11 @@ RACK_MUG_SIZE = 0.13  # the mug size (normalised cube side, metres) the rack's s
 def demo_scene() -> tuple[Scene, str]:
     """The demo's scene and a line saying what it is: the mug on the rack, or the ring without a mugs model."""
     try:
-        model = zoo.load(MUG_MODEL)
+        scene = load_scene(DEMO_SCENE)
     except ZooError as exc:
         return scene_from_dict(demo_scene_spec()), f"no {MUG_MODEL!r} model is packaged ({exc}); hanging an analytic ring instead"
-    scene = mug_rack_scene(model)
+    if getattr(scene.sdf.model, "detector", None) is None:
+        scene.method = "fw"  # a mugs package without a detector (mug_rack_scene's rule)
     return scene, f"{scene.sdf_label} hung by its handle on a procedural rack ({scene.method})"
 
 
@@ -154,7 +157,7 @@ def demo_scene_spec() -> dict:
 def error_vs_runtime(scene, iters=(1, 2, 5, 10, 20, 50), repeats: int = 3) -> list[dict]:
     """Optimality (eq. 12) and time of the amortized detector and of Frank-Wolfe at several iteration counts on
     the scene's candidates; times are medians of ``repeats`` calls after a warm-up (a first call pays for caches)."""
-    from zoo.collide import candidate_triangles
+    from zoo.collision import candidate_triangles
     from zoo.geometry import invert_pose, transform_points
 
     from .scenes import median_seconds

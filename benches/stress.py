@@ -22,12 +22,15 @@ from zoo.errors import ZooError
 from zoo.files import atomic_write_text
 from zoo.solvers import frank_wolfe, optimality, projected_gradient, reference
 
-CASES: list[tuple[str, Callable]] = []
+CASES: list[tuple[str, Callable]] = []  # (name, case(ctx) -> (expected, observed, ok)): what `zoo stress` runs, in order
+MODEL_CASES: set[str] = set()  # the names of the cases that stress a packaged model (`zoo stress --model`)
 
 
-def case(name: str):
+def case(name: str, needs_model: bool = False):
     def register(fn):
         CASES.append((name, fn))
+        if needs_model:
+            MODEL_CASES.add(name)
         return fn
 
     return register
@@ -222,7 +225,7 @@ def _million(ctx):
     return "finite values and gradients, memory bounded", {"seconds": dt, "sdf": type(sdf).__name__}, ok
 
 
-@case("queries at code positions (model)")
+@case("queries at code positions (model)", needs_model=True)
 def _code_positions(ctx):
     shape = ctx.get("shape_sdf")
     if shape is None:
@@ -233,12 +236,12 @@ def _code_positions(ctx):
     return "finite value and gradient exactly at every code position (inverse-distance weights)", {"points": int(d.numel())}, ok
 
 
-@case("softmax saturation (model)")
+@case("softmax saturation (model)", needs_model=True)
 def _saturation(ctx):
     shape, model = ctx.get("shape_sdf"), ctx.get("model")
     if shape is None or model is None or model.detector is None:
         return "needs --model with a detector", "skipped: no detector", True
-    from zoo.detect import vertex_features
+    from zoo.amortized import vertex_features
 
     tris = triangles_around(shape.normalised, 256, 0.03, 0.02)
     feats = vertex_features(shape, tris)
@@ -254,7 +257,7 @@ def _saturation(ctx):
     return "barycentrics stay finite on the simplex when the logits saturate", results, all(v == "on simplex" for v in results.values())
 
 
-@case("amortized on huge and penetrating triangles (model)")
+@case("amortized on huge and penetrating triangles (model)", needs_model=True)
 def _amortized_extremes(ctx):
     shape, model = ctx.get("shape_sdf"), ctx.get("model")
     if shape is None or model is None or model.detector is None:
@@ -440,20 +443,30 @@ def _malformed(ctx):
 # ------------------------------------------------------------------------------ the run
 
 
-def run_stress(out: str | Path = "out/stress.json", model: str | None = None, shape: str | None = None) -> dict:
-    """Run every case; write and return the report. ``model``/``shape`` add a NeuralSDF to the cases."""
+def stress_context(model: str | None = None, shape: str | None = None) -> dict:
+    """What the cases run on: an analytic torus; with ``model`` (NAME[@VERSION]), also that model and its
+    ``shape`` (default its first) as a NeuralSDF."""
     ctx = {"sdf": zoo.Torus(major=0.3, minor=0.1)}
     if model:
         m = zoo.load(model)
         ctx["model"], ctx["shape_sdf"] = m, m.shape(shape or m.shapes[0])
-    records = []
-    for name, fn in CASES:
-        t0 = time.perf_counter()
-        try:
-            expected, observed, ok = fn(ctx)
-        except Exception as exc:  # noqa: BLE001 - a crash is a failed case, recorded
-            expected, observed, ok = "no exception", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}", False
-        records.append({"case": name, "expected": expected, "observed": _jsonable(observed), "ok": bool(ok), "seconds": time.perf_counter() - t0})
+    return ctx
+
+
+def run_case(name: str, fn: Callable, ctx: dict) -> dict:
+    """One case's record ``{case, expected, observed, ok, seconds}``; an exception is a failure, recorded."""
+    t0 = time.perf_counter()
+    try:
+        expected, observed, ok = fn(ctx)
+    except Exception as exc:  # noqa: BLE001 - a crash is a failed case, recorded
+        expected, observed, ok = "no exception", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}", False
+    return {"case": name, "expected": expected, "observed": _jsonable(observed), "ok": bool(ok), "seconds": time.perf_counter() - t0}
+
+
+def run_stress(out: str | Path = "out/stress.json", model: str | None = None, shape: str | None = None) -> dict:
+    """Run every case; write and return the report. ``model``/``shape`` add a NeuralSDF to the cases."""
+    ctx = stress_context(model, shape)
+    records = [run_case(name, fn, ctx) for name, fn in CASES]
     report = {
         "torch": torch.__version__, "machine": platform.machine(), "model": model,
         "passed": sum(r["ok"] for r in records), "failed": sum(not r["ok"] for r in records), "cases": records,

@@ -17,7 +17,7 @@ def demo(out: str = typer.Option("out/demo", help="Folder for the demo's JSON an
 
 @app.command()
 def collide(
-    scene: str = typer.Argument(..., help="Scene file (TOML): an SDF object, a mesh object, poses, margin, method."),
+    scene: str = typer.Argument(..., help="Scene file (TOML: an SDF object, a mesh object, poses, margin, method) or a bundled scene's name, e.g. demo-mug-rack."),
     out: str = typer.Option("out/scenes", help="Folder for the contacts JSON and PNG."),
     method: str = typer.Option(None, help="Override the scene's method: fw | pgd | voxel-fw | amortized."),
 ):

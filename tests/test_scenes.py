@@ -7,7 +7,7 @@ import pytest
 
 import zoo
 from zoo import parts
-from zoo.scenes import load_scene, pose_matrix, run_scene, scene_from_dict, write_outputs
+from zoo.scenes import load_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
 from benches.stress import CASES, run_stress
 from zoo.errors import DataError, InputError
 
@@ -117,3 +117,42 @@ def test_demo_error_against_run_time_on_the_bundled_model():
     assert rows["fw-10"]["optimality_mean"] < rows["fw-1"]["optimality_mean"]
     # the detector's polished answer beats ten Frank-Wolfe iterations on the hanging mug's candidates
     assert rows["amortized"]["optimality_mean"] < rows["fw-10"]["optimality_mean"]
+
+
+# --------------------------------------------------------------------------- the bundled demo scene
+
+
+def test_the_bundled_demo_scene_loads_by_name_without_zoo_data_and_collides(tmp_path, monkeypatch):
+    monkeypatch.delenv("ZOO_DATA", raising=False)
+    monkeypatch.chdir(tmp_path)  # not the clone: the bare name and the clone-relative path are both looked up
+    assert resolve_scene("demo-mug-rack") == resolve_scene("scenes/demo-mug-rack.toml")
+    scene = load_scene("demo-mug-rack")
+    assert scene.name == "demo-mug-rack" and scene.mesh_label == "procedural:rack" and scene.method == "amortized"
+    contacts = run_scene(scene)
+    assert contacts.n_candidates > len(contacts) > 50  # the handle's bar on the peg
+    assert -2e-3 < float(contacts.depths.min()) < 0  # pressed about half a millimetre in, as the file says
+    top_of_peg = contacts.points[:, 2] > 0.19  # the peg rises from z 0.193; the base and the post are far below
+    assert bool(top_of_peg.all())
+
+
+def test_the_demo_scene_file_holds_the_pose_hanging_pose_computes():
+    from benches.demo import mug_rack_scene
+
+    computed, bundled = mug_rack_scene(zoo.load("mugs")), load_scene("demo-mug-rack")
+    np.testing.assert_allclose(bundled.sdf_pose, computed.sdf_pose, rtol=0, atol=1e-12)
+    assert bundled.margin == pytest.approx(computed.margin, rel=1e-12) and bundled.sdf_label == computed.sdf_label
+    np.testing.assert_array_equal(bundled.mesh.vertices, computed.mesh.vertices)
+
+
+def test_a_bare_scene_name_is_found_in_the_installed_packages_data(tmp_path, monkeypatch):
+    import zoo.scenes
+
+    package = tmp_path / "site-packages" / "zoo"
+    (package / "data" / "scenes").mkdir(parents=True)
+    (package / "data" / "scenes" / "ball.toml").write_text('name = "ball"\n')
+    monkeypatch.setattr(zoo.scenes.zoo, "__file__", str(package / "__init__.py"))  # as a wheel installs it
+    monkeypatch.chdir(tmp_path)
+    assert resolve_scene("ball") == package / "data" / "scenes" / "ball.toml"
+    assert resolve_scene("scenes/ball.toml") == package / "data" / "scenes" / "ball.toml"
+    with pytest.raises(DataError, match="one of: ball"):
+        resolve_scene("teapot")

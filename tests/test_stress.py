@@ -1,4 +1,5 @@
-"""`zoo stress`'s extreme training batches, and malformed meshes given to fit_codes (API and CLI)."""
+"""Every `zoo stress` case, its extreme training batches in detail, and malformed meshes given to
+fit_codes (API and CLI)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,35 @@ import json
 import pytest
 
 import zoo
-from benches.stress import CASES, run_stress
-from zoo.errors import DataError
+from benches.stress import CASES, MODEL_CASES, run_case, run_stress, stress_context
+from zoo.errors import DataError, ZooError
+
+STRESS_MODEL = "mugs"  # shipped in the package: the model cases need no $ZOO_DATA
+SLOW_CASES = {"extreme training batches", "amortized on huge and penetrating triangles (model)"}  # 5-12 s each
+
+
+@pytest.fixture(scope="module")
+def stress_contexts():
+    """The context of `zoo stress` (an analytic torus) and of `zoo stress --model mugs` (None if not packaged)."""
+    try:
+        with_model = stress_context(STRESS_MODEL)
+    except ZooError:
+        with_model = None
+    return {"plain": stress_context(), "model": with_model}
+
+
+@pytest.mark.parametrize("name", [pytest.param(name, marks=[pytest.mark.slow] if name in SLOW_CASES else [])
+                                  for name, _ in CASES])
+def test_stress_case(name, stress_contexts):
+    """Each case of the list `zoo stress` runs, as it runs it: the model cases on the shipped mugs model (as
+    `--model mugs`), the others on the analytic torus (the default; with a NeuralSDF "one million points"
+    alone takes minutes)."""
+    ctx = stress_contexts["model"] if name in MODEL_CASES else stress_contexts["plain"]
+    if ctx is None:
+        pytest.skip(f"needs the {STRESS_MODEL!r} model packaged (zoo.load({STRESS_MODEL!r}) failed)")
+    record = run_case(name, dict(CASES)[name], ctx)
+    assert record["ok"], json.dumps(record, indent=1)[:4000]
+    assert "skipped" not in json.dumps(record["observed"])  # a model case that found no model did not run
 
 
 def test_stress_reports_extreme_training_batches_ok(tmp_path, monkeypatch):

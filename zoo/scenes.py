@@ -10,7 +10,7 @@ refine = 0                # FW steps warm-started from the method's answer
 model = "mugs"            # a packaged model by name (zoo.load), with
 shape = "hoi4d_mug_0001"  # one of its shapes; or `fit = "new_mug.obj"` to fit_codes a mesh
 # analytic = "sphere", params = { radius = 0.05 }   # an analytic SDF instead of a model
-pose = { translation = [0, 0, 0], rotation_deg = [0, 0, 0] }   # xyz Euler angles, degrees
+pose = { translation = [0, 0, 0], rotation_deg = [0, 0, 0] }   # xyz Euler angles, degrees; or a 4x4 list
 
 [mesh]
 procedural = "rack"       # zoo.parts: rack | holder | plane, with `params = {...}`
@@ -19,7 +19,10 @@ scale = 1.0               # e.g. 0.001 for a mesh in millimetres
 pose = { translation = [0, 0, 0] }
 ```
 
-A scene loads only the model it names and builds a voxel grid only for ``voxel-fw``.
+A scene loads only the model it names and builds a voxel grid only for ``voxel-fw``. A scene is
+named by its path or, for the bundled ones (the project's ``scenes/``, the wheel's ``zoo/data/scenes``),
+by its bare name: ``load_scene("demo-mug-rack")`` (:func:`resolve_scene`). Its picture is drawn by
+:mod:`zoo.scene_picture` (matplotlib, imported only then).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import numpy as np
 
 import zoo
 from zoo.errors import DataError, InputError
-from zoo.files import atomic_path, atomic_write_text
+from zoo.files import atomic_write_text
 from zoo.meshes import load_mesh
 from zoo.registry import toml_parser
 
@@ -81,11 +84,34 @@ def pose_matrix(spec: dict | list | None) -> np.ndarray:
     return m
 
 
+def scene_folders() -> list[Path]:
+    """Where bundled scene files live, in the order :func:`resolve_scene` looks: the project's
+    top-level ``scenes/`` (a clone or an editable install), then the installed wheel's copy."""
+    package = Path(zoo.__file__).resolve().parent
+    return [package.parent / "scenes", package / "data" / "scenes"]
+
+
+def resolve_scene(name: str | os.PathLike) -> Path:
+    """A scene file from a path or a bare name: ``"demo-mug-rack"`` or ``"scenes/demo-mug-rack.toml"``.
+
+    Looks at the path as given, then for ``<name>.toml`` in each of :func:`scene_folders`.
+    """
+    given = Path(name)
+    if given.is_file():
+        return given
+    filename = given.name if given.suffix == ".toml" else f"{given.name}.toml"
+    for folder in scene_folders():
+        if (folder / filename).is_file():
+            return folder / filename
+    bundled = sorted({p.stem for folder in scene_folders() if folder.is_dir() for p in folder.glob("*.toml")})
+    raise DataError(f"scene file {name} does not exist (looked at the path, then for {filename} in "
+                    f"{', '.join(str(f) for f in scene_folders())}); give a path or one of: {', '.join(bundled) or 'none'}")
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Read a scene file and build its SDF and mesh (loading only the model it names)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"scene file {path} does not exist")
+    """Read a scene file (a path, or a bundled scene's name: :func:`resolve_scene`) and build its SDF
+    and mesh (loading only the model it names)."""
+    path = resolve_scene(path)
     try:
         spec = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
@@ -196,48 +222,12 @@ def contacts_summary(scene: Scene, contacts) -> dict:
 
 
 def write_outputs(scene: Scene, contacts, out_dir: str | os.PathLike) -> dict[str, Path]:
-    """Write ``<name>.json`` and ``<name>.png`` (contacts and normals over the mesh) into ``out_dir``."""
+    """Write ``<name>.json`` and ``<name>.png`` (both objects and their contacts: :mod:`zoo.scene_picture`) into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path, png_path = out / f"{scene.name}.json", out / f"{scene.name}.png"
     atomic_write_text(json_path, json.dumps(contacts_summary(scene, contacts), indent=1))
-    plot_contacts(scene, contacts, png_path)
+    from .scene_picture import plot_scene  # matplotlib, only when a picture is drawn
+
+    plot_scene(scene, contacts, png_path)
     return {"json": json_path, "png": png_path}
-
-
-def plot_contacts(scene: Scene, contacts, path: str | os.PathLike) -> None:
-    """Render the mesh triangles near the contacts, the contact points and their normals."""
-    from zoo.errors import require
-
-    require("matplotlib")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    verts = np.asarray(scene.mesh.vertices) @ scene.mesh_pose[:3, :3].T + scene.mesh_pose[:3, 3]
-    faces = np.asarray(scene.mesh.faces)
-    pts = contacts.points.double().numpy()
-    fig = plt.figure(figsize=(7, 6))
-    ax = fig.add_subplot(projection="3d")
-    if len(pts):
-        centre, radius = pts.mean(0), max(np.ptp(pts, axis=0).max(), 0.02)
-    else:
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in scene.sdf.bounds)
-        centre, radius = scene.sdf_pose[:3, :3] @ ((lo + hi) / 2) + scene.sdf_pose[:3, 3], float(np.max(hi - lo))
-    near = np.linalg.norm(verts[faces].mean(1) - centre, axis=1) < 1.5 * radius
-    shown = faces[near][:20000]
-    ax.add_collection3d(Poly3DCollection(verts[shown], facecolor=(0.7, 0.7, 0.75, 0.25), edgecolor=(0.3, 0.3, 0.3, 0.15), linewidth=0.2))
-    if len(pts):
-        d = contacts.depths.double().numpy()
-        sc = ax.scatter(*pts.T, c=d, cmap="coolwarm_r", s=8, depthshade=False)
-        n = contacts.normals.double().numpy() * radius * 0.15
-        ax.quiver(*pts.T, *n.T, color="k", linewidth=0.5, arrow_length_ratio=0.2)
-        fig.colorbar(sc, ax=ax, shrink=0.6, label="signed distance (m)")
-    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
-        setter(c - radius, c + radius)
-    ax.set_title(f"{scene.name}: {len(contacts)} contacts ({scene.method})")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
