@@ -41,7 +41,7 @@ from pathlib import Path
 
 import torch
 
-from zoo.detect import detect
+from zoo.amortized import detect
 from zoo.errors import InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, edge_lengths
@@ -257,7 +257,7 @@ def best_vertex(sdf, triangles: torch.Tensor) -> torch.Tensor:
 def polished_best_vertex(sdf, triangles: torch.Tensor, rounds: int | None = None) -> torch.Tensor:
     """The baseline that isolates the network's part in ``amortized+ls``: the same polish (the vertex test,
     then ``rounds`` line-search steps, default ``POLISH_ROUNDS``) from the lowest vertex instead of the network's answer."""
-    from zoo.detect import POLISH_LINE_STEPS, POLISH_ROUNDS
+    from zoo.amortized import POLISH_LINE_STEPS, POLISH_ROUNDS
     from zoo.solvers import line_search_steps, vertex_values
 
     rounds = POLISH_ROUNDS if rounds is None else rounds
@@ -278,14 +278,14 @@ def _monomials(bary: torch.Tensor, degree: int) -> torch.Tensor:
 
 def interpolant_minimum(sdf, triangles: torch.Tensor, degree: int, grid_level: int = 240, chunk: int = 64) -> torch.Tensor:
     """The minimum of the degree-``degree`` polynomial that equals ``sdf`` at each triangle's Lagrange nodes (the
-    (k+1)(k+2)/2 points of ``zoo.solvers.barycentric_grid(k)``), found on
+    (k+1)(k+2)/2 points of ``zoo.geometry.barycentric_grid(k)``), found on
     the barycentric grid of ``grid_level``: triangles (M, 3, 3) -> bary (M, 3), in their dtype.
 
     The ceiling of a forward pass that models the SDF over the triangle by such a polynomial: it is given the exact
     values a network would have to predict. Grid spacing 1/``grid_level`` of the triangle (0.4% at the default: an
     order below the placement the bench's tolerance rows show matters).
     """
-    from zoo.solvers import barycentric_grid
+    from zoo.geometry import barycentric_grid
 
     nodes = barycentric_grid(degree, torch.float64)
     to_coefficients = torch.linalg.inv(_monomials(nodes, degree))  # (N, N): node values -> monomial coefficients

@@ -73,7 +73,7 @@ import numpy as np
 import torch
 
 import zoo
-from zoo.collide import DEFAULT_ITERS, candidate_triangles
+from zoo.collision import DEFAULT_ITERS, candidate_triangles
 from zoo.errors import InputError, ModelNotFoundError
 from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
@@ -440,7 +440,7 @@ def amortized_answers(sdf, tri: torch.Tensor, polish: bool = True) -> torch.Tens
     stop at: ``detect_mesh`` (the lowest of its answer, the vertices and the known point) where the SDF has it,
     else ``detect``."""
     if callable(getattr(sdf, "detect_mesh", None)):
-        from zoo.detect import unique_rows
+        from zoo.geometry import unique_rows
 
         vertices, inverse = unique_rows(tri.reshape(-1, 3))
         return sdf.detect_mesh(vertices, inverse.reshape(-1, 3), polish=polish)[0]

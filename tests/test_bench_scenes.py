@@ -25,7 +25,7 @@ from benches.scenes import (
 )
 from pipeline.categories import load_category
 from zoo.scenes import scene_from_dict
-from zoo.collide import DEFAULT_ITERS
+from zoo.collision import DEFAULT_ITERS
 from zoo.registry import toml_parser
 
 tomllib = toml_parser()
@@ -99,7 +99,7 @@ def test_voxel_region_has_the_full_grids_spacing_and_holds_the_candidates():
 
 
 def test_the_voxel_part_is_the_grid_collide_uses():
-    from zoo.collide import clear_voxel_cache
+    from zoo.collision import clear_voxel_cache
 
     sphere = zoo.Sphere(0.1)
     vertices = np.array([[0.09, -0.02, -0.02], [0.09, 0.02, -0.02], [0.09, 0.0, 0.03]])

@@ -6,7 +6,6 @@ edges), and a dense barycentric sampling for non-convex SDFs (a torus).
 """
 
 import math
-import sys
 
 import numpy as np
 import pytest
@@ -14,8 +13,9 @@ import torch
 import trimesh
 
 import zoo
-from zoo.collide import METHODS, candidate_triangles, clear_voxel_cache
-from zoo.detect import cell_lower_bounds
+import zoo.collision
+from zoo.bounds import cell_lower_bounds
+from zoo.collision import METHODS, candidate_triangles, clear_voxel_cache
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points
 from zoo.voxel import VoxelSDF
@@ -176,7 +176,7 @@ def test_broad_phase_keeps_the_tight_case_of_the_vertex_cull(m):
     sphere = zoo.Sphere(r)
     torch.testing.assert_close(sphere(tri.reshape(-1, 3)).reshape(m, 3), (margin + radius).expand(m, 3), rtol=0, atol=1e-12)
     # (the vertex cull itself: the bounding-box test before it may drop some, rightly: their centres lie beyond the margin)
-    vertex_cull = sys.modules["zoo.collide"]._vertex_cull
+    vertex_cull = zoo.collision._vertex_cull
     assert bool(vertex_cull(sphere, *_indexed(tri), margin)[0].all())
     # and just beyond the margin they are all culled: the cull is not merely keeping everything
     assert not bool(vertex_cull(sphere, *_indexed(tri + 0.01 * u.unsqueeze(1)), margin)[0].any())
@@ -186,7 +186,7 @@ def test_cell_bounds_drop_only_faces_the_plain_vertex_cull_keeps_in_vain():
     """The cell pre-pass against the plain vertex cull (every vertex queried): it keeps a subset, every
     face it drops beyond that is farther than the margin (exact sphere distances), the values it returns
     are the SDF's, and a face it clears costs no vertex query."""
-    collide_module = sys.modules["zoo.collide"]
+    collide_module = zoo.collision
     sphere = zoo.Sphere(0.25, center=(0.03, -0.02, 0.01))
     tri = random_triangles(sphere, 3000, seed=4).float()
     exact, _ = sphere_reference(sphere.center.numpy(), sphere.radius, tri.double().numpy())
@@ -453,7 +453,7 @@ def test_polish_false_gives_the_unpolished_narrow_phase_and_only_for_amortized()
 
 def _indexed(tri: torch.Tensor):
     """Triangles (M, 3, 3) -> (distinct vertices (V, 3), faces (M, 3))."""
-    from zoo.detect import unique_rows
+    from zoo.geometry import unique_rows
 
     v, inverse = unique_rows(tri.reshape(-1, 3))
     return v, inverse.reshape(-1, 3)

@@ -118,7 +118,7 @@ def scene():
 @pytest.mark.parametrize("subject", [SUBJECT_ID])
 def test_amortized_contacts_match_the_multi_start_reference(scene, subject):
     # collide's amortized narrow phase keeps the triangle's best vertex and its centroid where they are
-    # lower than the network's answer (zoo.detect.solve_mesh): on mugs@1.1.0 the answers alone gave
+    # lower than the network's answer (zoo.amortized.solve_mesh): on mugs@1.1.0 the answers alone gave
     # recall 0.940 (79 of 84), with the vertices and centroid 0.976 (82 of 84), precision 1.000 both.
     c = zoo.collide(SUBJECT, (scene["vertices"], scene["faces"]), margin=scene["margin"], method="amortized")
     assert c.n_triangles == 20480

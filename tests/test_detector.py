@@ -24,7 +24,7 @@ from pipeline.train_detector import (
     train,
 )
 from pipeline.triangle_sampling import sample_constrained_triangles
-from zoo.detect import detect, subdivision_barycentrics
+from zoo.amortized import detect, subdivision_barycentrics
 from zoo.detector import AmortizedDetector, quadratic_argmin, quadratic_minimum
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, perimeter
@@ -526,7 +526,7 @@ def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_tria
 
 def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_polynomial():
     from benches.detector import interpolant_minimum
-    from zoo.solvers import barycentric_grid
+    from zoo.geometry import barycentric_grid
 
     a = torch.tensor([0.6, -0.3, 0.2], dtype=torch.float64)
 

@@ -20,24 +20,27 @@ import pytest
 import torch
 
 import zoo
-import zoo.detect
+import zoo.amortized.batching
+import zoo.amortized.search
 from zoo import neural
-from zoo.detect import (
+from zoo.amortized import (
     POLISH_LINE_STEPS,
     POLISH_ROUNDS,
-    cell_lower_bounds,
+    Known,
+    SolveOptions,
     detect,
     solve_mesh,
     strip_barycentrics,
     strip_levels,
     subdivision_barycentrics,
     subdivision_levels,
-    unique_rows,
     vertex_features,
 )
+from zoo.amortized.subdivision import grid_barycentrics
+from zoo.bounds import cell_lower_bounds
 from zoo.detector import AmortizedDetector
 from zoo.errors import InputError
-from zoo.geometry import bary_to_points, edge_lengths
+from zoo.geometry import bary_to_points, edge_lengths, unique_rows
 from zoo.meshes import Similarity
 from zoo.neural import (
     NeuralSDF,
@@ -322,14 +325,14 @@ def test_strips_tile_a_needle_with_pieces_in_range_and_fewer_than_the_regular_on
 def pieces_reaching_the_network(monkeypatch, det, shape, vertices, faces) -> list:
     """solve_mesh without culls; -> the pieces it hands the network: [(rows (P,), grid (P, 3, 2), levels (P,))]."""
     seen = []
-    real = zoo.detect._answer_pieces
+    real = zoo.amortized.batching.answer_pieces
 
     def spy(detector_, shape_, tri_n, table, pieces, *args, **kwargs):
         seen.extend((p[0], p[2], p[3]) for p in pieces)
         return real(detector_, shape_, tri_n, table, pieces, *args, **kwargs)
 
-    monkeypatch.setattr(zoo.detect, "_answer_pieces", spy)
-    solve_mesh(det, shape, vertices, faces, vertex_check=False, cull=False)
+    monkeypatch.setattr(zoo.amortized.batching, "answer_pieces", spy)
+    solve_mesh(det, shape, vertices, faces, SolveOptions(vertex_check=False, cull=False))
     return seen
 
 
@@ -349,7 +352,7 @@ def test_bisected_pieces_tile_a_long_triangle_and_are_in_range(monkeypatch):
     v, inv = unique_rows(tri.reshape(-1, 3))
     seen = pieces_reaching_the_network(monkeypatch, det, shape, v, inv.reshape(-1, 3))
     rows, grid, level = (torch.cat(t) for t in zip(*seen))
-    corners = zoo.detect._grid_barycentrics(grid, level.view(-1, 1), torch.float64)  # (P, 3, 3) parent barycentrics
+    corners = grid_barycentrics(grid, level.view(-1, 1), torch.float64)  # (P, 3, 3) parent barycentrics
     pieces = torch.einsum("pjk,pkc->pjc", corners, tri[rows])
     longest = edge_lengths(tri).amax(dim=-1)
     allowed = torch.clamp_min(longest / 64, max_edge)[rows]
@@ -374,13 +377,13 @@ def test_bisected_neighbours_share_the_points_on_their_common_edge(monkeypatch):
     shape, det = TorusWithCodes(), detector()
     seen = pieces_reaching_the_network(monkeypatch, det, shape, v, faces)
     rows, grid, level = (torch.cat(t) for t in zip(*seen))
-    corners = zoo.detect._grid_barycentrics(grid, level.view(-1, 1), torch.float64)
+    corners = grid_barycentrics(grid, level.view(-1, 1), torch.float64)
     points = torch.einsum("pjk,pkc->pjc", corners, v[faces][rows]).reshape(-1, 3)
     on_edge = points[:, 1].abs() < 1e-12
     distinct = unique_rows(points.round(decimals=9))[0]
     assert int(unique_rows(points[on_edge].round(decimals=9))[0].shape[0]) > 10  # both sides cut the edge
     shape.feature_points = 0
-    solve_mesh(det, shape, v, faces, vertex_check=False, cull=False)
+    solve_mesh(det, shape, v, faces, SolveOptions(vertex_check=False, cull=False))
     assert shape.feature_points == distinct.shape[0]  # each point once, the edge's shared
 
 
@@ -391,9 +394,9 @@ def test_search_gives_the_exhaustive_answer_and_evaluates_less():
     levels = subdivision_levels(tri, det.edge_range[1])
     assert int((levels > 1).sum()) > 30 and int(levels.max()) > 8  # flat and bisected levels both
     shape.feature_points = 0
-    culled, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False)
+    culled, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), SolveOptions(vertex_check=False))
     culled_points, shape.feature_points = shape.feature_points, 0
-    exhaustive, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False)
+    exhaustive, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), SolveOptions(vertex_check=False, cull=False))
     # an exact (1-Lipschitz) SDF: the culls drop only pieces that cannot hold the answer
     f_culled, f_exhaustive = (shape.normalised(bary_to_points(tri, b)) for b in (culled, exhaustive))
     torch.testing.assert_close(f_culled, f_exhaustive, atol=1e-12, rtol=0)
@@ -409,9 +412,9 @@ def test_search_in_parts_gives_the_answers_of_one_search(monkeypatch):
     v, inv = unique_rows(tri.reshape(-1, 3))
     whole = solve_mesh(det, shape, v, inv.reshape(-1, 3))
     parts = []
-    real = zoo.detect._search_part
-    monkeypatch.setattr(zoo.detect, "_search_part", lambda *a, **k: parts.append(a[1]) or real(*a, **k))
-    monkeypatch.setattr(zoo.detect, "_CELL_BUDGET", 64)
+    real = zoo.amortized.search.search_part
+    monkeypatch.setattr(zoo.amortized.search, "search_part", lambda *a, **k: parts.append(a[1]) or real(*a, **k))
+    monkeypatch.setattr(zoo.amortized.search, "CELL_BUDGET", 64)
     split = solve_mesh(det, shape, v, inv.reshape(-1, 3))
     assert len(parts) > 3
     assert sum(len(set(p.tolist())) for p in parts) == len(set(torch.cat(parts).tolist()))  # each row in one part only
@@ -443,7 +446,7 @@ def test_a_subdivided_triangle_polishes_its_lowest_piece_inside_that_piece():
     rows = (levels > 1) & (levels <= 7)  # searched flat: with cull=False every piece of level n reaches the network
     tri = tri[rows]
     v, inv = unique_rows(tri.reshape(-1, 3))
-    ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=True)
+    ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), SolveOptions(vertex_check=False, cull=False, polish=True))
     sdf = shape.normalised
     for i, n in enumerate(levels[rows].tolist()):
         corners = flat_pieces(tri[i], n, det.edge_range[1])  # (P, 3, 3) pieces in parent barycentrics
@@ -459,7 +462,7 @@ def test_a_subdivided_triangle_polishes_its_lowest_piece_inside_that_piece():
         grid_f = sdf(pieces.reshape(-1, 3))
         expected = min(float(f_answers.min()), float(grid_f.min()), float(sdf((polished @ tri[i])[None])))
         assert abs(float(sdf((ours[i] @ tri[i])[None])) - expected) < 1e-7, (i, n)
-    unpolished, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=False)
+    unpolished, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), SolveOptions(vertex_check=False, cull=False, polish=False))
     gap = lambda b: zoo.solvers.optimality(sdf, tri, b).mean()  # noqa: E731
     assert gap(ours) < 0.5 * gap(unpolished)
 
@@ -474,7 +477,7 @@ def test_a_quadratic_head_evaluates_only_the_piece_its_own_model_puts_lowest():
     rows = (levels > 1) & (levels <= 7)
     tri = tri[rows]
     v, inv = unique_rows(tri.reshape(-1, 3))
-    ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), vertex_check=False, cull=False, polish=True)
+    ours, _ = solve_mesh(det, shape, v, inv.reshape(-1, 3), SolveOptions(vertex_check=False, cull=False, polish=True))
     sdf = shape.normalised
     for i, n in enumerate(levels[rows].tolist()):
         corners = flat_pieces(tri[i], n, det.edge_range[1])
@@ -494,7 +497,7 @@ def test_vertex_check_keeps_the_lower_of_the_answer_and_the_best_vertex():
     v, f = grid_mesh(12, size=0.5, z=0.03, jitter=0.004)
     tri = v[f]
     plain = detect(det, shape, tri, polish=False)
-    checked, values = solve_mesh(det, shape, v, f, vertex_check=True)
+    checked, values = solve_mesh(det, shape, v, f, SolveOptions(vertex_check=True))
     f_plain, f_checked = (shape.normalised(bary_to_points(tri, b)) for b in (plain, checked))
     f_vertex = shape.normalised(tri.reshape(-1, 3)).reshape(-1, 3).amin(-1)
     torch.testing.assert_close(f_checked, torch.minimum(f_plain, f_vertex), atol=1e-12, rtol=0)
@@ -534,19 +537,19 @@ def test_vertex_values_given_are_used_as_the_queried_ones_and_spare_their_querie
     shape.normalised = Counting(shape.normalised)
     for polish in (False, True):
         counted.clear()
-        bary, values = solve_mesh(det, shape, v, faces, polish=polish)
+        bary, values = solve_mesh(det, shape, v, faces, SolveOptions(polish=polish))
         queried = sum(counted)
         for share in (1.0, 0.5):
             given = exact.clone()
             given[torch.rand(len(v), generator=torch.Generator().manual_seed(1)) >= share] = float("nan")
             given[-3:] = float("nan")
             counted.clear()
-            bary_g, values_g = solve_mesh(det, shape, v, faces, polish=polish, vertex_values=given)
+            bary_g, values_g = solve_mesh(det, shape, v, faces, SolveOptions(polish=polish), Known(vertex_values=given))
             torch.testing.assert_close(bary_g, bary, atol=1e-12, rtol=0)
             torch.testing.assert_close(values_g, values, atol=1e-12, rtol=0)
             assert sum(counted) == queried - int(torch.isfinite(given).sum())
     with pytest.raises(InputError, match="one distance per vertex"):
-        solve_mesh(det, shape, v, faces, vertex_values=exact[:-1])
+        solve_mesh(det, shape, v, faces, known=Known(vertex_values=exact[:-1]))
 
 
 def test_cutoff_and_known_point_keep_every_contact_and_its_depth():
@@ -558,7 +561,7 @@ def test_cutoff_and_known_point_keep_every_contact_and_its_depth():
     full_bary, full = solve_mesh(det, shape, v, faces)
     centroids = tri.mean(1)
     known = (torch.full(tri.shape[:2], 1 / 3, dtype=tri.dtype), source(centroids))
-    cut_bary, cut = solve_mesh(det, shape, v, faces, cutoff=cutoff, known=known)
+    cut_bary, cut = solve_mesh(det, shape, v, faces, SolveOptions(cutoff=cutoff), Known(*known))
     contacts = full <= cutoff
     assert 20 < int(contacts.sum()) < len(tri) - 20
     torch.testing.assert_close(cut <= cutoff, contacts | (known[1] <= cutoff))  # the same contacts (and the centroid's)

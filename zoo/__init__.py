@@ -9,10 +9,32 @@ from __future__ import annotations
 from . import errors, geometry
 from . import solvers
 from .sdf import SDF, Box, Capsule, SDFBase, Sphere, Torus, TransformedSDF
-from .collide import Contacts, collide
+from .collision import Contacts, collide
 from .voxel import VoxelSDF
 from .registry import list_models, load
 from .model import Model
 from .neural import NeuralSDF, NeuralShape
 
 __version__ = "0.1.0"
+
+# The public contract (docs/DESIGN.md): what tests, benchmarks and the README rely on.
+__all__ = [
+    "SDF",
+    "Box",
+    "Capsule",
+    "Contacts",
+    "Model",
+    "NeuralSDF",
+    "NeuralShape",
+    "SDFBase",
+    "Sphere",
+    "Torus",
+    "TransformedSDF",
+    "VoxelSDF",
+    "collide",
+    "errors",
+    "geometry",
+    "list_models",
+    "load",
+    "solvers",
+]

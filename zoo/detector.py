@@ -38,7 +38,7 @@ minimum over the triangle (:func:`quadratic_argmin`). The vertex values make the
 Features are standardised by fixed statistics of the training set (buffers saved with the weights).
 
 Answering triangles with it (in the trained range or not, one at a time or a whole mesh, with the
-polish that follows the forward pass) is :mod:`zoo.detect`.
+polish that follows the forward pass) is :mod:`zoo.amortized`.
 
 Every per-vertex network is shared across the three vertices and every pooling is symmetric
 (softmax-weighted sum; the two cosines are sorted), so permuting the vertices permutes the
@@ -54,7 +54,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from .errors import InputError
-from .geometry import edge_lengths
+from .geometry import barycentric_grid, edge_lengths
 
 TRIANGLE_FEATURE_MODES = ("condition", "context", "temperature", "additive", "none")
 # softmax: the paper's; sparsemax: the Euclidean projection of the scores onto the simplex, which
@@ -68,7 +68,7 @@ _GRID_RESOLUTION = 24  # grid steps per edge: 325 candidate points per triangle
 EDGE_PAIRS = ((1, 2), (2, 0), (0, 1))
 
 # The paper's training-set edge range (normalised frame); triangles longer than the upper
-# bound are subdivided by zoo.detect, see ``zoo.detect.subdivision_levels``.
+# bound are subdivided by zoo.amortized, see ``zoo.amortized.subdivision_levels``.
 DEFAULT_EDGE_RANGE = (0.03, 0.08)
 # Where a temperature is learned it is softplus(h_psi2) + this floor, so it never reaches 0
 # (which would flatten every answer to the centroid) and needs no clamping.
@@ -148,7 +148,7 @@ class AmortizedDetector(nn.Module):
         if self.output == "grid":
             # per-edge curvature from both ends' features (symmetric in the two) and the edge's length
             self.h_edge = _mlp([3 * c + 1, self.hidden, self.hidden, 1])
-            self.register_buffer("grid", _barycentric_grid(_GRID_RESOLUTION), persistent=False)
+            self.register_buffer("grid", barycentric_grid(_GRID_RESOLUTION), persistent=False)
         if self.triangle_feature in ("condition", "context"):
             # A descent direction for the triangle from z_tri and where the triangle is: the
             # score -d . (v_i - centroid) is Frank-Wolfe's vertex choice when d is the SDF's
@@ -376,12 +376,6 @@ class AmortizedDetector(nn.Module):
                 f"features must have shape (M, 3, {self.feature_dim}) to match {triangles.shape[0]} triangles, "
                 f"got {tuple(features.shape)}; compute them with shape.features(vertices) reshaped to (M, 3, C)"
             )
-
-
-def _barycentric_grid(n: int) -> torch.Tensor:
-    """All (i, j, k) / n with i + j + k = n: (G, 3), symmetric under every vertex permutation."""
-    ij = [(i, j) for i in range(n + 1) for j in range(n + 1 - i)]
-    return torch.tensor([(i / n, j / n, (n - i - j) / n) for i, j in ij], dtype=torch.float32)
 
 
 def grid_soft_argmax(vertex: torch.Tensor, edge: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:

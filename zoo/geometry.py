@@ -46,6 +46,38 @@ def centroid(triangles: torch.Tensor) -> torch.Tensor:
     return triangles.mean(dim=1)
 
 
+def unique_rows(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distinct rows of ``points`` (N, 3) and where each row went: (U, 3), inverse (N,) with ``unique[inverse] == points``.
+
+    Exact (rows equal in every coordinate are merged), by three stable sorts: far cheaper than
+    ``torch.unique(dim=0)``.
+    """
+    n = points.shape[0]
+    order = torch.argsort(points[:, 2], stable=True)
+    for col in (1, 0):
+        order = order[torch.argsort(points[order, col], stable=True)]
+    s = points[order]
+    new = torch.ones(n, dtype=torch.bool, device=points.device)
+    new[1:] = (s[1:] != s[:-1]).any(dim=-1)
+    inverse = torch.empty(n, dtype=torch.int64, device=points.device)
+    inverse[order] = torch.cumsum(new, 0) - 1
+    return s[new], inverse
+
+
+def barycentric_grid(resolution: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """All (i, j, k) / resolution with i + j + k = resolution: (G, 3), G = (r+1)(r+2)/2.
+
+    Rows run over i, then j (row order matters: the detector's soft-argmax head sums in it). Includes
+    the three vertices exactly (rows of the identity) and points on every edge; symmetric under
+    every vertex permutation. Computed in float64, then cast.
+    """
+    r = int(resolution)
+    i, j = torch.meshgrid(torch.arange(r + 1), torch.arange(r + 1), indexing="ij")
+    keep = (i + j) <= r
+    ijk = torch.stack([i[keep], j[keep], r - i[keep] - j[keep]], dim=-1)
+    return (ijk.to(torch.float64) / r).to(dtype=dtype, device=device)
+
+
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply a 4x4 transform to points (..., 3)."""
     return points @ pose[:3, :3].T + pose[:3, 3]

@@ -103,16 +103,16 @@ class Model:
 
         ``polish`` (default): a triangle whose lowest vertex satisfies the KKT conditions (its gradient
         there, one query per distinct vertex) is answered at that vertex; the others take the network's
-        answer and ``zoo.detect.POLISH_ROUNDS`` Frank-Wolfe steps with a line search (each one
-        value-and-gradient query and up to ``zoo.detect.POLISH_LINE_STEPS`` value queries);
-        ``polish=False``: the forward pass alone.
+        answer and ``zoo.amortized.POLISH_ROUNDS`` Frank-Wolfe steps with a line search (each one
+        value-and-gradient query and up to ``zoo.amortized.POLISH_LINE_STEPS`` value queries);
+        ``polish=False``: the forward pass alone. Zero triangles give (0, 3).
         """
         if self.detector is None:
             raise ModelNotFoundError(
                 f"model {self.name!r} has no detector (its package holds no {DETECTOR_WEIGHTS}); "
                 "train one with `zoo fit-category` (detector stage), or use zoo.solvers.frank_wolfe(shape, triangles)"
             )
-        from .detect import detect
+        from .amortized import detect
 
         return detect(self.detector, shape, triangles, polish=polish)
 
@@ -297,7 +297,6 @@ def load_sdf_weights(path: Path, config: dict) -> NeuralSDF:
                         "re-create the package")
     sdf = NeuralSDF(sdf_config, n_shapes)
     state = {k: v.float() for k, v in tensors.items()}
-    state = {("decoder." + k[len("decoder."):]) if k.startswith("decoder.") else k: v for k, v in state.items()}
     try:
         sdf.load_state_dict(state)
     except RuntimeError as exc:

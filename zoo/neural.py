@@ -343,10 +343,6 @@ class NeuralShape(SDFBase):
 
     # ---- evaluation
 
-    def _network(self, dtype: torch.dtype, device: torch.device):
-        """(decoder, positions (1, K, 3), codes (1, K, C)) in ``dtype`` on ``device``, cached."""
-        return self._cached(dtype, device)[:3]
-
     def _cached(self, dtype: torch.dtype, device: torch.device):
         """(decoder, positions (1, K, 3), codes (1, K, C), augmented cloud or None) in ``dtype`` on ``device``.
 
@@ -473,16 +469,16 @@ class NeuralShape(SDFBase):
         whose lowest vertex passes the vertex test (its gradient there) is answered at that vertex;
         the others' answers take line-search steps (a subdivided triangle's: one, on its lowest piece)
         before that comparison. ``vertex_values`` (V,): distances at ``vertices`` the caller has already
-        (NaN where it has none), which are then not queried again. See :func:`zoo.detect.solve_mesh`.
+        (NaN where it has none), which are then not queried again. See :func:`zoo.amortized.solve_mesh`.
         """
         if self.model is None:
             raise InputError(f"shape {self.name!r} is not attached to a model; call model.detect(shape, triangles)")
         if getattr(self.model, "detector", None) is None:
             return self.model.detect(self, vertices[faces])  # raises the model's own error
-        from .detect import solve_mesh
+        from .amortized import Known, SolveOptions, solve_mesh
 
-        return solve_mesh(self.model.detector, self, vertices, faces, cutoff=cutoff, known=known, vertex_check=True,
-                          polish=polish, vertex_values=vertex_values)
+        known = Known(vertex_values=vertex_values) if known is None else Known(*known, vertex_values=vertex_values)
+        return solve_mesh(self.model.detector, self, vertices, faces, SolveOptions(cutoff=cutoff, polish=polish), known)
 
     def to(self, device) -> "NeuralShape":
         """A copy whose tensors live on ``device`` (inputs on other devices are handled too)."""

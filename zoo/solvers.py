@@ -27,7 +27,7 @@ import math
 import torch
 
 from .errors import InputError
-from .geometry import bary_to_points, mean_edge_length, perimeter
+from .geometry import bary_to_points, barycentric_grid, mean_edge_length, perimeter
 from .sdf import check_sdf
 from .validation import as_rows, as_simplex, as_triangles, float_in, non_negative_int
 
@@ -350,7 +350,7 @@ def reference(sdf, triangles, resolution: int = 32, polish_iters: int = 100, chu
     chunk_points = non_negative_int(chunk_points, "chunk_points")
     grid = barycentric_grid(resolution, dtype=tri.dtype, device=tri.device)
     per_chunk = max(1, chunk_points // grid.shape[0])
-    out = []
+    out = [tri.new_zeros((0, 3))]  # the answer when there are no triangles
     for start in range(0, tri.shape[0], per_chunk):
         t = tri[start : start + per_chunk]
         bary, f = _grid_minimum(sdf, t, grid)
@@ -455,31 +455,22 @@ def project_to_simplex(x) -> torch.Tensor:
     return (x - theta).clamp_min(0)
 
 
-def barycentric_grid(resolution: int, dtype=torch.float32, device=None) -> torch.Tensor:
-    """All (i, j, k) / resolution with i + j + k = resolution: (G, 3), G = (r+1)(r+2)/2.
-
-    Includes the three vertices exactly (rows of the identity) and points on every edge.
-    """
-    r = int(resolution)
-    i, j = torch.meshgrid(torch.arange(r + 1), torch.arange(r + 1), indexing="ij")
-    keep = (i + j) <= r
-    ijk = torch.stack([i[keep], j[keep], r - i[keep] - j[keep]], dim=-1)
-    return (ijk.to(torch.float64) / r).to(dtype=dtype, device=device)
-
-
 # --------------------------------------------------------------------------------------------
 # Internals
 # --------------------------------------------------------------------------------------------
 
 
 def _prepare(sdf, triangles) -> torch.Tensor:
+    """Validated triangles (M, 3, 3); M = 0 is normal (a simulation step with nothing near) and gives empty answers."""
     check_sdf(sdf)
-    return as_triangles(triangles)
+    return as_triangles(triangles, allow_empty=True)
 
 
 def _value_and_grad(sdf, tri: torch.Tensor, bary: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """f and grad f at the points of ``bary`` (M, 3) on ``tri`` (M, 3, 3): (M,), (M, 3)."""
     p = bary_to_points(tri, bary)
+    if p.shape[0] == 0:  # no triangles: nothing to ask the SDF (which refuses empty points)
+        return p.new_zeros((0,)), p.new_zeros((0, 3))
     f, g = sdf.value_and_grad(p)
     f, g = torch.as_tensor(f), torch.as_tensor(g)
     if f.shape != p.shape[:1] or g.shape != p.shape:
@@ -496,6 +487,8 @@ def _values(sdf, tri: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
         p = bary_to_points(tri, bary)
     else:
         p = torch.einsum("mkv,mvc->mkc", bary, tri)
+    if p.numel() == 0:  # no triangles: nothing to ask the SDF (which refuses empty points)
+        return p.new_zeros(p.shape[:-1])
     f = torch.as_tensor(sdf(p.reshape(-1, 3)))
     if f.numel() != p.numel() // 3:
         raise InputError(f"{type(sdf).__name__} on points ({p.numel() // 3}, 3) returned shape {tuple(f.shape)}; it must return (N,)")

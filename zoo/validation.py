@@ -151,12 +151,14 @@ def as_rows(x, name: str) -> torch.Tensor:
     return t
 
 
-def as_points(points, name: str = "points", dtype: torch.dtype | None = None) -> torch.Tensor:
+def as_points(points, name: str = "points", dtype: torch.dtype | None = None, allow_empty: bool = False) -> torch.Tensor:
     """Validate and convert ``points`` to a float tensor of shape (N, 3).
 
-    Raises :class:`InputError` for wrong shapes, empty input, NaN or Inf.
+    Raises :class:`InputError` for wrong shapes, NaN or Inf, and for empty input unless ``allow_empty``.
     """
-    t = as_float_tensor(points, name, dtype)
+    t = as_float_tensor(points, name, dtype, allow_empty=allow_empty)
+    if allow_empty and t.numel() == 0 and t.ndim < 2:
+        t = t.reshape(0, 3)  # an empty list or array: no points
     if t.ndim != 2 or t.shape[-1] != 3:
         raise InputError(f"{name} must have shape (N, 3), got {tuple(t.shape)}; reshape with .reshape(-1, 3)")
     check_finite(t, name)

@@ -41,9 +41,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .detect import cell_lower_bounds, unique_rows
+from .bounds import cell_lower_bounds, rounding_slack
 from .errors import InputError
-from .geometry import bary_to_points, invert_pose, transform_points, transform_vectors
+from .geometry import bary_to_points, invert_pose, transform_points, transform_vectors, unique_rows
 from .sdf import check_sdf
 from .validation import as_points, as_pose, as_triangles, int_at_least, non_negative_float
 
@@ -108,7 +108,7 @@ def candidate_triangles(sdf, triangles, margin: float = 1e-3) -> torch.Tensor:
         (:func:`_vertex_cull`).
     """
     check_sdf(sdf)
-    triangles = as_triangles(triangles)
+    triangles = as_triangles(triangles, allow_empty=True)
     margin = non_negative_float(margin, "margin")
     near_box = _overlaps_bounds(sdf, triangles, margin).nonzero().squeeze(-1)
     if near_box.numel() == 0:
@@ -152,7 +152,7 @@ def _vertex_cull(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float
     """Faces (N, 3) into ``vertices`` (V, 3) (the SDF's frame) -> (may touch (N,) bool, f at the vertices (V,)).
 
     A face is dropped when the lower bound of a 1-Lipschitz f over it, from f at its three vertices
-    (:func:`zoo.detect.cell_lower_bounds`), exceeds ``margin``. f is evaluated once per distinct
+    (:func:`zoo.bounds.cell_lower_bounds`), exceeds ``margin``. f is evaluated once per distinct
     vertex, about half as many queries as one per face, and the amortized narrow phase reuses the
     values; entries of the returned f are NaN where it was not evaluated. Many vertices first go
     through :func:`_cell_bounds`: a face its cheaper bounds clear costs no vertex query.
@@ -194,13 +194,8 @@ def _cell_bounds(sdf, points: torch.Tensor) -> torch.Tensor:
     with torch.no_grad():
         f = torch.as_tensor(sdf(centre)).reshape(-1).to(points)[cell]
     reach = (points - centre[cell]).norm(dim=-1)
-    return f - reach - _rounding_slack(f, reach, points)
-
-
-def _rounding_slack(f: torch.Tensor, reach: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """f is rounded to the dtype: thresholds keep points within a few ulps of ``reach`` so that a cull
-    never drops what the exact arithmetic would keep."""
-    return 16 * torch.finfo(f.dtype).eps * (f.abs().nan_to_num(0, 0, 0) + reach + points.abs().amax(dim=-1))
+    # f is rounded to the dtype: the bound keeps a few ulps so that the cull never drops what exact arithmetic would keep
+    return f - reach - rounding_slack(f.abs().nan_to_num(0, 0, 0), reach, points.abs().amax(dim=-1))
 
 
 # -- collide --------------------------------------------------------------------------------
@@ -237,7 +232,7 @@ def collide(
         refine: Frank-Wolfe steps warm-started from the method's answer (0: none).
         voxel_resolution: samples per axis of the grid for "voxel-fw".
         polish: "amortized" on a model's shape only: the vertex test, then line-search steps from
-            the network's answers where it fails (``zoo.detect.solve_mesh``). False is the forward
+            the network's answers where it fails (``zoo.amortized.solve_mesh``). False is the forward
             pass alone (no gradient query in the narrow phase), less precise: the scene bench
             (``zoo bench --scenes``) measures both.
 
@@ -395,7 +390,7 @@ def _mesh_arrays(mesh) -> tuple[torch.Tensor, torch.Tensor]:
         raise InputError(
             f"mesh must be a trimesh.Trimesh or a (vertices (V, 3), faces (F, 3)) pair, got {type(mesh).__name__}"
         )
-    vertices = as_points(vertices, "mesh vertices")
+    vertices = as_points(vertices, "mesh vertices", allow_empty=True)  # an empty mesh has no contacts, not an error
     faces = _faces(faces, vertices.shape[0]).to(vertices.device)
     return vertices, faces
 
@@ -405,10 +400,12 @@ def _faces(faces, n_vertices: int) -> torch.Tensor:
         f = torch.as_tensor(faces)
     except (TypeError, ValueError, RuntimeError) as exc:
         raise InputError(f"mesh faces must be an integer array (F, 3), got {type(faces).__name__}") from exc
+    if f.numel() == 0:
+        return torch.zeros((0, 3), dtype=torch.int64)  # an empty mesh (or [] faces): no contacts
     if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
         raise InputError(f"mesh faces must hold integer vertex indices, got dtype {f.dtype}")
-    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
-        raise InputError(f"mesh faces must have shape (F, 3) with F >= 1, got {tuple(f.shape)}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InputError(f"mesh faces must have shape (F, 3), got {tuple(f.shape)}")
     f = f.long()
     low, high = torch.aminmax(f)  # one pass over the faces instead of two comparisons and two reductions
     if int(low) < 0 or int(high) >= n_vertices:
