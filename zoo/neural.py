@@ -22,11 +22,12 @@ the (P, K) weights: no log, no exp, about half the time, the same values to floa
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
+from .config import DictConfig
 from .errors import InputError
 from .validation import as_points
 from .sdf import SDFBase
@@ -43,8 +44,12 @@ _CHUNK_ELEMENTS = 1 << 20
 
 
 @dataclass(frozen=True)
-class NeuralSDFConfig:
+class NeuralSDFConfig(DictConfig):
     """Sizes of a code-cloud NeuralSDF; stored as ``config.json["sdf"]`` in a package."""
+
+    _config_name = "NeuralSDF config"
+    _ignored_keys = ("type", "n_params", "storage_dtype")  # descriptive keys a package's config.json adds
+    _unknown_hint = "; this package needs a newer sdfzoo"
 
     n_codes: int = 256
     code_dim: int = 32
@@ -66,19 +71,6 @@ class NeuralSDFConfig:
             raise InputError(f"n_codes, code_dim and every hidden size must be positive, got {self}")
         if not (0.0 <= self.smooth_beta < float("inf")):
             raise InputError(f"smooth_beta must be 0 (LeakyReLU) or a positive finite sharpness, got {self.smooth_beta}")
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["hidden"] = list(self.hidden)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "NeuralSDFConfig":
-        known = {f for f in cls.__dataclass_fields__}
-        unknown = set(d) - known - {"type", "n_params", "storage_dtype"}  # descriptive keys
-        if unknown:
-            raise InputError(f"unknown NeuralSDF config keys {sorted(unknown)}; this package needs a newer sdfzoo")
-        return cls(**{k: v for k, v in d.items() if k in known})
 
 
 # --------------------------------------------------------------------------- the interpolation
