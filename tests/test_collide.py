@@ -336,6 +336,54 @@ def test_no_contact_gives_empty_contacts_of_the_right_shapes():
     assert c.triangles.dtype == torch.int64 and c.n_triangles == len(faces) and c.n_candidates == 0
 
 
+def assert_empty_contacts(c, dtype=None):
+    assert len(c) == 0 and c.n_candidates == 0
+    assert c.points.shape == (0, 3) and c.depths.shape == (0,) and c.normals.shape == (0, 3) and c.triangles.shape == (0,)
+    assert c.triangles.dtype == torch.int64 and c.bary.shape == (0, 3)
+    if dtype is not None:
+        assert c.points.dtype == c.depths.dtype == c.normals.dtype == dtype
+
+
+def empty_meshes():
+    """Meshes with no faces, in every form collide takes: a simulation step may hand it any of them."""
+    return {
+        "trimesh": trimesh.Trimesh(),
+        "arrays": (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)),
+        "vertices, no faces": (np.random.default_rng(0).random((5, 3)), np.zeros((0, 3), dtype=np.int64)),
+        "lists": ([], []),
+        "float32 tensors": (torch.zeros(0, 3), torch.zeros(0, 3, dtype=torch.int64)),
+    }
+
+
+@pytest.mark.parametrize("method", ["fw", "pgd", "voxel-fw", "amortized"])
+def test_an_empty_mesh_gives_empty_contacts_for_every_method(method):
+    sdf = ExactSphereDetector(**SPHERE)
+    for name, mesh in empty_meshes().items():
+        c = zoo.collide(sdf, mesh, method=method, voxel_resolution=16)
+        assert_empty_contacts(c, torch.float32 if name in ("lists", "float32 tensors") else torch.float64)  # float64 kept
+        assert c.n_triangles == 0, name
+
+
+@pytest.mark.parametrize("method", ["fw", "pgd", "voxel-fw", "amortized"])
+def test_nothing_near_gives_empty_contacts_for_every_method(method):
+    sdf = ExactSphereDetector(0.1)
+    corner = np.array([[0.095, 0.095, 0.095], [0.099, 0.095, 0.095], [0.095, 0.099, 0.095]])  # in the bounds box, 0.06 from the sphere
+    plane = plane_grid(4)
+    for vertices, faces in ((plane[0] + np.array([0.0, 0.0, 0.5]), plane[1]), (corner, np.array([[0, 1, 2]]))):
+        c = zoo.collide(sdf, (vertices, faces), method=method, voxel_resolution=16)
+        assert_empty_contacts(c)
+        assert c.n_triangles == len(faces)
+
+
+def test_a_model_shape_collides_with_an_empty_mesh_or_nothing_near():
+    shape = zoo.load("mugs").shape("hoi4d_mug_0001")
+    far = plane_grid(4)[0] + np.array([10.0, 10.0, 10.0]), plane_grid(4)[1]
+    for method in ("amortized", "fw", "pgd", "voxel-fw"):
+        for mesh in (trimesh.Trimesh(), far):
+            assert_empty_contacts(zoo.collide(shape, mesh, method=method, voxel_resolution=16))
+    assert candidate_triangles(shape, torch.zeros(0, 3, 3)).shape == (0,)
+
+
 def test_degenerate_faces_are_kept_and_answered_exactly():
     vertices = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.05, 0.02, 0], [0.3, 0.3, 0.3]])
     faces = np.array([[0, 1, 2], [3, 3, 3], [0, 0, 1], [4, 4, 4], [0, 1, 3]])  # collinear, point, segment, far point, fine

@@ -27,7 +27,7 @@ from pipeline.triangle_sampling import sample_constrained_triangles
 from zoo.amortized import detect, subdivision_barycentrics
 from zoo.detector import AmortizedDetector, quadratic_argmin, quadratic_minimum
 from zoo.errors import InputError
-from zoo.geometry import bary_to_points, perimeter
+from zoo.geometry import bary_to_points, barycentric_grid, perimeter
 from zoo.meshes import Similarity
 from zoo.neural import interpolate_codes
 from zoo.solvers import optimality, reference
@@ -237,7 +237,7 @@ def test_optimality_loss_reaches_the_detector_through_the_sdf_gradient(torus_dat
 
 def brute_force_quadratic_min(values, curvature, n=240):
     """min over an n-step barycentric grid of q(l) = sum l_i f_i - sum_k l_i l_j kappa_k: (M,)."""
-    grid = torch.tensor([(i / n, j / n, (n - i - j) / n) for i in range(n + 1) for j in range(n + 1 - i)], dtype=values.dtype)
+    grid = barycentric_grid(n, values.dtype)
     g0, g1, g2 = grid.unbind(-1)
     q = values @ grid.T - curvature[:, :1] * (g1 * g2) - curvature[:, 1:2] * (g2 * g0) - curvature[:, 2:] * (g0 * g1)
     return q.min(dim=1).values
@@ -526,7 +526,6 @@ def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_tria
 
 def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_polynomial():
     from benches.detector import interpolant_minimum
-    from zoo.geometry import barycentric_grid
 
     a = torch.tensor([0.6, -0.3, 0.2], dtype=torch.float64)
 
@@ -543,3 +542,59 @@ def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_
     torch.testing.assert_close(interpolant_minimum(cubic, tri, 4, grid_level=level), brute, atol=1e-12, rtol=0)
     quadratic = interpolant_minimum(cubic, tri, 2, grid_level=level)
     assert not torch.allclose(quadratic, brute)  # a lower degree misses the cubic term
+
+
+# --------------------------------------------------------------------------- the shared barycentric grid
+
+
+def private_grid_of_the_detector(n: int) -> torch.Tensor:
+    """The grid the detector's soft-argmax head was trained on, as it built it before the shared builder."""
+    ij = [(i, j) for i in range(n + 1) for j in range(n + 1 - i)]
+    return torch.tensor([(i / n, j / n, (n - i - j) / n) for i, j in ij], dtype=torch.float32)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 24])
+def test_the_shared_grid_has_the_detectors_rows_in_its_order_bit_for_bit(n):
+    # the soft-argmax head sums over the grid's rows in their order: a trained head gives the same
+    # outputs only if every row is the same, in the same place
+    assert torch.equal(barycentric_grid(n), private_grid_of_the_detector(n))
+    assert torch.equal(barycentric_grid(n, torch.float64).float(), private_grid_of_the_detector(n))
+
+
+def test_a_grid_head_gives_the_same_outputs_on_the_shared_grid():
+    torch.manual_seed(0)
+    det = AmortizedDetector(output="grid").eval()
+    with torch.no_grad():
+        for p in det.parameters():
+            p.add_(0.3 * torch.randn_like(p))  # weights away from their initial values, as after training
+    assert torch.equal(det.grid, private_grid_of_the_detector(24))  # zoo.detector._GRID_RESOLUTION
+    g = torch.Generator().manual_seed(1)
+    tri = 0.05 * torch.randn(64, 3, 3, generator=g)
+    feats = torch.randn(64, 3, det.feature_dim, generator=g)
+    with torch.no_grad():
+        shared = det(tri, feats)
+        det.grid = private_grid_of_the_detector(24)
+        private = det(tri, feats)
+    assert torch.equal(shared, private)
+
+
+# --------------------------------------------------------------------------- empty input
+
+
+def test_detect_on_zero_triangles_gives_zero_rows():
+    shape, det = StandInShape(), AmortizedDetector()
+    for dtype in (torch.float32, torch.float64):
+        for polish in (False, True):
+            bary = detect(det, shape, torch.zeros(0, 3, 3, dtype=dtype), polish=polish)
+            assert bary.shape == (0, 3) and bary.dtype == dtype
+
+
+def test_model_detect_on_zero_triangles_gives_zero_rows():
+    try:
+        m = zoo.load("mugs")
+    except zoo.errors.ZooError as exc:  # pragma: no cover - a checkout without the packaged model
+        pytest.skip(f"no mugs model: {exc}")
+    shape = m.shape(m.shapes[0])
+    for polish in (False, True):
+        assert m.detect(shape, torch.zeros(0, 3, 3), polish=polish).shape == (0, 3)
+    assert shape.detect(torch.zeros(0, 3, 3, dtype=torch.float64)).dtype == torch.float64

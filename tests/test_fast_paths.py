@@ -569,3 +569,49 @@ def test_cutoff_and_known_point_keep_every_contact_and_its_depth():
     # the distances returned are the SDF's at the returned points, in the source frame
     torch.testing.assert_close(cut, source(bary_to_points(tri, cut_bary)), atol=1e-9, rtol=0)
     torch.testing.assert_close(full, source(bary_to_points(tri, full_bary)), atol=1e-9, rtol=0)
+
+
+def test_best_so_far_keeps_the_lowest_candidate_per_row_like_a_loop():
+    # Candidates offered in several batches, with repeated rows, ties and rows never offered: the
+    # best per row is the lowest value, the first such in order (a later equal one does not replace
+    # it), and a row that takes a candidate is no longer the known point's.
+    from zoo.amortized import BestSoFar
+
+    g = torch.Generator().manual_seed(3)
+    m = 40
+    best = BestSoFar(m, torch.float64, "cpu")
+    best.from_known[:] = True
+    value = [math.inf] * m
+    bary = [[1 / 3] * 3 for _ in range(m)]
+    from_known = [True] * m
+    for _ in range(6):
+        q = 90
+        rows = torch.randint(0, m - 5, (q,), generator=g)  # the last five rows are never offered
+        values = torch.randint(0, 12, (q,), generator=g).double() / 4  # coarse values: many ties
+        b = torch.rand(q, 3, generator=g, dtype=torch.float64)
+        best.offer(rows, values, b)
+        for r, v, row_bary in zip(rows.tolist(), values.tolist(), b.tolist()):
+            if v < value[r]:
+                value[r], bary[r], from_known[r] = v, row_bary, False
+    torch.testing.assert_close(best.value, torch.tensor(value, dtype=torch.float64), atol=0, rtol=0)
+    torch.testing.assert_close(best.bary, torch.tensor(bary, dtype=torch.float64), atol=0, rtol=0)
+    assert best.from_known.tolist() == from_known
+    assert best.from_known[-5:].all() and bool(torch.isinf(best.value[-5:]).all())
+    best.offer(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64))
+    torch.testing.assert_close(best.value, torch.tensor(value, dtype=torch.float64), atol=0, rtol=0)
+
+
+def test_solve_options_refuse_a_cutoff_without_the_vertex_check():
+    with pytest.raises(InputError, match="cutoff needs vertex_check=True"):
+        SolveOptions(cutoff=1e-3, vertex_check=False)
+
+
+def test_zero_triangles_give_empty_answers():
+    shape, det = TorusWithCodes(), detector()
+    for dtype in (torch.float32, torch.float64):
+        for polish in (False, True):
+            bary = detect(det, shape, torch.zeros(0, 3, 3, dtype=dtype), polish=polish)
+            assert bary.shape == (0, 3) and bary.dtype == dtype
+    bary, values = solve_mesh(det, shape, torch.rand(4, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.int64))
+    assert bary.shape == (0, 3) and values.shape == (0,)
+    assert detect(det, shape, []).shape == (0, 3)

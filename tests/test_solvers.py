@@ -527,7 +527,6 @@ def test_warm_start_on_degenerate_triangles(sphere):
     [
         lambda s, t: solvers.frank_wolfe(s, t.clone().fill_(float("nan"))),
         lambda s, t: solvers.frank_wolfe(s, t[:, :2]),
-        lambda s, t: solvers.frank_wolfe(s, t[:0]),
         lambda s, t: solvers.frank_wolfe(object(), t),
         lambda s, t: solvers.frank_wolfe(s, t, iters=-1),
         lambda s, t: solvers.frank_wolfe(s, t, iters=2.5),
@@ -548,6 +547,32 @@ def test_bad_input_raises_input_error(sphere, call):
     tri = triangles_near(sphere.center, 3, seed=10)
     with pytest.raises(InputError):
         call(sphere, tri)
+
+
+def test_zero_triangles_give_empty_answers_without_asking_the_sdf(sphere):
+    # A simulation step with nothing near hands the solvers no triangles: an empty answer, not an
+    # error (this used to raise InputError, listed among the bad inputs above), and no SDF query.
+    for dtype in (torch.float32, torch.float64):
+        tri = torch.zeros(0, 3, 3, dtype=dtype)
+        none = torch.zeros(0, 3, dtype=dtype)
+        calls = sphere.calls
+        answers = {
+            "fw": solvers.frank_wolfe(sphere, tri),
+            "fw warm": solvers.frank_wolfe(sphere, tri, init=none),
+            "pgd": solvers.projected_gradient(sphere, tri),
+            "reference": solvers.reference(sphere, tri),
+            "line search": solvers.line_search_step(sphere, tri, none),
+            "line searches": solvers.line_search_steps(sphere, tri, none, None, 2),
+            "vertex values": solvers.vertex_values(sphere, tri),
+        }
+        for name, bary in answers.items():
+            assert bary.shape == (0, 3) and bary.dtype == dtype, name
+        gap = solvers.optimality(sphere, tri, none)
+        assert gap.shape == (0,) and gap.dtype == dtype
+        assert sphere.calls == calls
+    assert solvers.frank_wolfe(sphere, []).shape == (0, 3)  # an empty list is no triangles too
+    bary, ran = solvers.projected_gradient(sphere, torch.zeros(0, 3, 3), return_iterations=True)
+    assert bary.shape == (0, 3) and ran == 0
 
 
 def test_an_sdf_returning_wrong_shapes_is_reported(sphere):
