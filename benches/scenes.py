@@ -51,10 +51,11 @@ child would build the grid again), and a sub-grid of more than ``MAX_VOXEL_SAMPL
 not built at all (the row says so).
 
 When a scene names a model that is not packaged yet, its SDF is a stand-in: a VoxelSDF of the
-exact signed distance of the mesh the shape was fitted on (the category manifest gives the
-file), over the region the scene needs, cached in ``<out>/standins``. A stand-in has no
-detector, so the amortized rows say so instead of giving numbers, and its voxel rows are skipped
-(it is a grid already). Every row says which SDF it ran on.
+exact signed distance of the mesh the shape was fitted on (``zoo.meshes.ExactMeshSDF``, signed by
+winding number as the training samples are; the category manifest gives the file), over the region
+the scene needs, cached in ``<out>/standins``. A stand-in has no detector, so the amortized rows say
+so instead of giving numbers, and its voxel rows are skipped (it is a grid already). Every row says
+which SDF it ran on.
 """
 
 from __future__ import annotations
@@ -172,38 +173,6 @@ def load_bench_scene(path: str | os.PathLike, standin_dir: str | os.PathLike = "
 # =========================================================================== stand-ins
 
 
-class ExactMeshSDF:
-    """Exact signed distance of a mesh (libigl: AABB distance, sign by pseudonormal), SDF protocol.
-
-    For building stand-in grids only: a query costs tens of microseconds per point. The
-    pseudonormal sign is exact for closed meshes; the stand-ins' meshes (Factory bolts, the
-    IndustReal gears after vertex merging, scanned mugs) are closed or nearly so.
-    """
-
-    def __init__(self, mesh):
-        from zoo.errors import require
-
-        self._igl = require("igl")
-        self.v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-        self.f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-        lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
-        self.bounds = (torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32))
-
-    def __call__(self, points) -> torch.Tensor:
-        p = torch.as_tensor(points)
-        q = np.ascontiguousarray(p.detach().cpu().numpy(), dtype=np.float64)
-        d = self._igl.signed_distance(q, self.v, self.f, sign_type=self._igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
-        return torch.as_tensor(d, dtype=p.dtype if p.is_floating_point() else torch.float32)
-
-    def value_and_grad(self, points):
-        p = torch.as_tensor(points)
-        q = np.ascontiguousarray(p.detach().cpu().numpy(), dtype=np.float64)
-        d, _, closest, _ = self._igl.signed_distance(q, self.v, self.f, sign_type=self._igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
-        g = (q - closest) * np.sign(d)[:, None]
-        g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-30)
-        return torch.as_tensor(d, dtype=p.dtype), torch.as_tensor(g, dtype=p.dtype)
-
-
 def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_cells: int = 128,
                 max_points: int = 1_500_000) -> VoxelSDF:
     """A VoxelSDF of the exact SDF of ``shape``'s source mesh over the region the scene's mesh reaches.
@@ -212,13 +181,13 @@ def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_c
     grown by 5% of the shape's size; the spacing is the shape's longest side / ``spacing_cells``,
     coarsened if the region would need more than ``max_points`` samples. Cached by name.
     """
-    from zoo.meshes import load_mesh
+    from zoo.meshes import ExactMeshSDF, load_mesh
 
     from pipeline.categories import load_category, resolve_data_dir
 
     category = load_category(model)
     mesh_path = resolve_data_dir(None, category) / category.entry(shape).file
-    key = f"{model}-{shape}-{scene.name}-{spacing_cells}"
+    key = f"{model}-{shape}-{scene.name}-{spacing_cells}-winding"  # grids signed by the pseudonormal had no suffix
     cache = cache_dir / f"{key}.pt"
     if cache.is_file():
         return torch.load(cache, weights_only=False)

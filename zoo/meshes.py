@@ -270,18 +270,22 @@ def normalise(mesh, up_axis="z"):
 # --------------------------------------------------------------------------- signed distance
 
 
-def signed_distance(mesh, points) -> np.ndarray:
+SIGN_RULES = ("winding", "pseudonormal")
+
+
+def signed_distance(mesh, points, sign: str = "winding") -> np.ndarray:
     """Exact signed distance from points to a mesh, negative inside: (N, 3) -> (N,).
 
-    The magnitude is the exact distance to the nearest boundary triangle (libigl's AABB tree;
-    faces buried inside the solid are left out, see :func:`exterior_faces`). The sign
-    comes from the generalised winding number (libigl's fast winding number), which tolerates
-    open scans, holes and triangle soups where ray parity fails: a point is inside where
-    |w| > 0.5. The absolute value keeps a mesh whose faces all point inwards (a common export
-    bug) right; a mesh with inconsistently oriented patches can still be signed wrongly near them.
-    float32 points give float32 distances; anything else gives float64.
+    ``sign="winding"`` (the default, what the pipeline's samples use): the magnitude is the exact
+    distance to the nearest boundary triangle (libigl's AABB tree; faces buried inside the solid are
+    left out, see :func:`exterior_faces`), and the sign comes from the generalised winding number
+    (libigl's fast winding number), which tolerates open scans, holes and triangle soups where ray
+    parity fails: a point is inside where |w| > 0.5. The absolute value keeps a mesh whose faces all
+    point inwards (a common export bug) right; a mesh with inconsistently oriented patches can still
+    be signed wrongly near them. ``sign="pseudonormal"``: libigl's signed_distance over every face,
+    signed by the angle-weighted pseudonormal at the closest point: exact for closed, consistently
+    oriented meshes only. float32 points give float32 distances; anything else gives float64.
     """
-    igl = require("igl")
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[-1] != 3:
         raise InputError(f"points must have shape (N, 3), got {p.shape}; reshape with .reshape(-1, 3)")
@@ -290,15 +294,68 @@ def signed_distance(mesh, points) -> np.ndarray:
     q = np.ascontiguousarray(p, dtype=np.float64)
     if not np.isfinite(q).all():
         raise InputError("points hold NaN or Inf; remove them before calling signed_distance")
-    v, f = _igl_arrays(mesh)
-    outer = f[exterior_faces(mesh)]
-    # distances to the outer surface only: a face buried inside the solid (where touching or
-    # overlapping parts meet) is not on the boundary, and would add a false zero level set
-    sq, _, _ = igl.point_mesh_squared_distance(q, v, outer)
-    winding = igl.fast_winding_number(v, f, q)
-    d = np.sqrt(np.maximum(sq, 0.0))
-    d = np.where(np.abs(winding) > 0.5, -d, d)
+    d, _ = ExactMeshSDF(mesh, sign).distance_and_closest(q)
     return d.astype(_float_dtype(p), copy=False)
+
+
+class ExactMeshSDF:
+    """The exact signed distance of a mesh as an SDF (``sdf(points)``, ``value_and_grad``, ``bounds``).
+
+    The sign rule is :func:`signed_distance`'s ``sign``. A query costs tens of microseconds per
+    point (libigl's AABB tree): for references and for building grids (a VoxelSDF of it), not for a
+    simulator's hot path. The gradient is the unit vector from the closest surface point, signed.
+    """
+
+    def __init__(self, mesh, sign: str = "winding"):
+        if sign not in SIGN_RULES:
+            raise InputError(f"unknown sign rule {sign!r}; use one of {', '.join(SIGN_RULES)}")
+        self._igl = require("igl")
+        self.sign = sign
+        self.v, self.f = _igl_arrays(mesh)
+        # distances to the outer surface only: a face buried inside the solid (where touching or
+        # overlapping parts meet) is not on the boundary, and would add a false zero level set
+        self.outer = self.f[exterior_faces(mesh)] if sign == "winding" else self.f
+        self.lo, self.hi = self.v.min(axis=0), self.v.max(axis=0)
+
+    @property
+    def bounds(self):
+        """Two (3,) float32 tensors: the corners of the mesh's bounding box."""
+        import torch
+
+        return torch.as_tensor(self.lo, dtype=torch.float32), torch.as_tensor(self.hi, dtype=torch.float32)
+
+    def distance_and_closest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Float64 points (N, 3) -> signed distances (N,) and the closest surface points (N, 3)."""
+        if self.sign == "pseudonormal":
+            d, _, closest, _ = self._igl.signed_distance(q, self.v, self.f, sign_type=self._igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+            return d, closest
+        sq, _, closest = self._igl.point_mesh_squared_distance(q, self.v, self.outer)
+        winding = self._igl.fast_winding_number(self.v, self.f, q)
+        d = np.sqrt(np.maximum(sq, 0.0))
+        return np.where(np.abs(winding) > 0.5, -d, d), closest
+
+    def _query(self, points):
+        import torch
+
+        p = torch.as_tensor(points)
+        q = np.ascontiguousarray(p.detach().cpu().numpy(), dtype=np.float64).reshape(-1, 3)
+        return p.dtype if p.is_floating_point() else torch.float32, q, self.distance_and_closest(q)
+
+    def __call__(self, points):
+        """(N, 3) -> (N,) signed distances, in the points' float dtype (float32 otherwise)."""
+        import torch
+
+        dtype, _, (d, _) = self._query(points)
+        return torch.as_tensor(d, dtype=dtype)
+
+    def value_and_grad(self, points):
+        """(N, 3) -> distances (N,) and unit gradients (N, 3)."""
+        import torch
+
+        dtype, q, (d, closest) = self._query(points)
+        g = (q - closest) * np.sign(d)[:, None]
+        g = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-30)
+        return torch.as_tensor(d, dtype=dtype), torch.as_tensor(g, dtype=dtype)
 
 
 # A face is buried when the winding number exceeds this on both sides. Buried faces of touching
