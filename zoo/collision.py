@@ -45,7 +45,7 @@ from .bounds import cell_lower_bounds, rounding_slack
 from .errors import InputError
 from .geometry import bary_to_points, invert_pose, transform_points, transform_vectors, unique_rows
 from .sdf import check_sdf
-from .validation import as_points, as_pose, as_triangles, int_at_least, non_negative_float
+from .validation import as_faces, as_points, as_pose, as_triangles, int_at_least, mesh_pair, non_negative_float
 
 METHODS = ("fw", "pgd", "voxel-fw", "amortized")
 DEFAULT_ITERS = {"fw": 10, "pgd": 32, "voxel-fw": 10}
@@ -381,36 +381,10 @@ def clear_voxel_cache() -> None:
 
 
 def _mesh_arrays(mesh) -> tuple[torch.Tensor, torch.Tensor]:
-    """Validated vertices (V, 3) float and faces (F, 3) int64 from a mesh or a (V, F) pair."""
-    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        vertices, faces = mesh.vertices, mesh.faces
-    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
-        vertices, faces = mesh
-    else:
-        raise InputError(
-            f"mesh must be a trimesh.Trimesh or a (vertices (V, 3), faces (F, 3)) pair, got {type(mesh).__name__}"
-        )
-    vertices = as_points(vertices, "mesh vertices", allow_empty=True)  # an empty mesh has no contacts, not an error
-    faces = _faces(faces, vertices.shape[0]).to(vertices.device)
-    return vertices, faces
-
-
-def _faces(faces, n_vertices: int) -> torch.Tensor:
-    try:
-        f = torch.as_tensor(faces)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"mesh faces must be an integer array (F, 3), got {type(faces).__name__}") from exc
-    if f.numel() == 0:
-        return torch.zeros((0, 3), dtype=torch.int64)  # an empty mesh (or [] faces): no contacts
-    if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
-        raise InputError(f"mesh faces must hold integer vertex indices, got dtype {f.dtype}")
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise InputError(f"mesh faces must have shape (F, 3), got {tuple(f.shape)}")
-    f = f.long()
-    low, high = torch.aminmax(f)  # one pass over the faces instead of two comparisons and two reductions
-    if int(low) < 0 or int(high) >= n_vertices:
-        raise InputError(f"mesh faces index vertices outside 0..{n_vertices - 1}; fix the faces array")
-    return f
+    """Validated vertices (V, 3) float and faces (F, 3) int64 from a mesh or a (V, F) pair; an empty mesh is no error."""
+    vertices, faces = mesh_pair(mesh)
+    vertices = as_points(vertices, "mesh vertices", allow_empty=True)
+    return vertices, as_faces(faces, vertices.shape[0]).to(vertices.device)
 
 
 def _method(method) -> str:

@@ -214,3 +214,35 @@ def as_pose(pose, dtype: torch.dtype = torch.float32, name: str = "pose") -> tor
     if not torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), atol=1e-4) or float(torch.det(r)) <= 0:
         raise InputError(f"{name}'s upper-left 3x3 block must be a rotation (orthonormal, det +1)")
     return t
+
+
+# -- meshes --------------------------------------------------------------------------------------
+
+
+def mesh_pair(mesh, name: str = "mesh") -> tuple:
+    """(vertices, faces) as given, from a ``trimesh.Trimesh`` (anything with ``.vertices`` and ``.faces``)
+    or a (vertices (V, 3), faces (F, 3)) pair; the caller converts them (:func:`as_points`, :func:`as_faces`)."""
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        return mesh.vertices, mesh.faces
+    if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        return mesh[0], mesh[1]
+    raise InputError(f"{name} must be a trimesh.Trimesh or a (vertices (V, 3), faces (F, 3)) pair, got {type(mesh).__name__}")
+
+
+def as_faces(faces, n_vertices: int, name: str = "mesh faces") -> torch.Tensor:
+    """Faces as an int64 tensor (F, 3) of indices into ``n_vertices`` vertices; no faces (any empty array) is (0, 3)."""
+    try:
+        f = torch.as_tensor(faces)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"{name} must be an integer array (F, 3), got {type(faces).__name__}") from exc
+    if f.numel() == 0:
+        return torch.zeros((0, 3), dtype=torch.int64)  # an empty mesh (or [] faces)
+    if f.is_floating_point() or f.is_complex() or f.dtype == torch.bool:
+        raise InputError(f"{name} must hold integer vertex indices, got dtype {f.dtype}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InputError(f"{name} must have shape (F, 3), got {tuple(f.shape)}")
+    f = f.long()
+    low, high = torch.aminmax(f)  # one pass over the faces instead of two comparisons and two reductions
+    if int(low) < 0 or int(high) >= n_vertices:
+        raise InputError(f"{name} index vertices outside 0..{n_vertices - 1}; fix the faces array")
+    return f
