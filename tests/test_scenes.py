@@ -135,6 +135,7 @@ def test_the_bundled_demo_scene_loads_by_name_without_zoo_data_and_collides(tmp_
     assert bool(top_of_peg.all())
 
 
+@pytest.mark.slow
 def test_the_demo_scene_file_holds_the_pose_hanging_pose_computes():
     from benches.demo import mug_rack_scene
 
