@@ -1,0 +1,263 @@
+"""Bodies and the MuJoCo model built from them.
+
+A :class:`Body` holds an SDF and/or a mesh (both in the body's frame), its mass properties, its
+initial pose and velocity, a joint to its parent (the world) and an optional drive. :func:`build_model`
+writes them as MJCF: each body gets one carrier geom that MuJoCo's own collision ignores
+(contype = conaffinity = 0); sdfzoo's contacts name it as their geom, which tells MuJoCo's solver
+which bodies a contact pushes.
+
+Mass properties come from the geometry and a mass or a density: an SDF's inside volume is integrated
+on a grid over its ``bounds``; a mesh uses trimesh's mass properties (its convex hull where the mesh
+does not enclose a volume); or ``inertia`` and ``com`` are given.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+
+JOINTS = ("free", "fixed", "hinge", "slide")
+DRIVES = ("motor", "velocity")
+DEFAULT_DENSITY = 1000.0  # kg/m^3, water: used when neither a mass nor a density is given
+INERTIA_GRID = 40  # samples per axis when integrating an SDF's inside
+
+
+@dataclass
+class MassProperties:
+    """Mass (kg), centre of mass (3,) and inertia (3, 3) about it, in the body's frame."""
+
+    mass: float
+    com: np.ndarray
+    inertia: np.ndarray
+
+
+@dataclass
+class Body:
+    """One rigid body of a simulation.
+
+    Attributes:
+        name: unique name.
+        sdf: an SDF protocol object in the body's frame, or None.
+        mesh: (vertices (V, 3) float64, faces (F, 3) int64) in the body's frame, or None.
+        pose: (4, 4) initial world-from-body.
+        joint: "free", "fixed", "hinge" or "slide".
+        axis, anchor: the hinge or slide axis and a point on it, in the body's frame.
+        velocity: (6,) initial linear and angular velocity, world frame (free joint), or (1,) for a
+            hinge/slide; None is at rest.
+        drive: None, or {"type": "motor", "gear": g} (control = torque/force) or
+            {"type": "velocity", "kv": gain, "target": v} (a velocity servo that prescribes the joint's speed).
+        mass: the body's mass properties (None for a fixed body).
+    """
+
+    name: str
+    sdf: object = None
+    mesh: tuple | None = None
+    pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+    joint: str = "free"
+    axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    velocity: np.ndarray | None = None
+    drive: dict | None = None
+    mass: MassProperties | None = None
+    # ids in the built model, filled by build_model
+    body_id: int = -1
+    geom_id: int = -1
+    qpos_adr: int = -1
+    dof_adr: int = -1
+    actuator_id: int = -1
+
+
+def mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) float64, faces (F, 3) int64) from a trimesh or a (V, F) pair."""
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        vertices, faces = mesh.vertices, mesh.faces
+    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        vertices, faces = mesh
+    else:
+        raise InputError(f"a body's mesh must be a trimesh.Trimesh or a (vertices, faces) pair, got {type(mesh).__name__}")
+    vertices = np.asarray(torch.as_tensor(vertices).detach().cpu(), dtype=np.float64)
+    faces = np.asarray(torch.as_tensor(faces).detach().cpu(), dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(f"a mesh needs vertices (V, 3) and faces (F, 3); got {vertices.shape} and {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise InputError(f"mesh faces index vertices 0..{len(vertices) - 1}; got indices {faces.min()}..{faces.max()}")
+    if not np.isfinite(vertices).all():
+        raise InputError("mesh vertices hold NaN or Inf; repair the mesh")
+    return vertices, faces
+
+
+def sdf_mass_properties(sdf, mass: float | None = None, density: float | None = None,
+                        resolution: int = INERTIA_GRID) -> MassProperties:
+    """Mass properties of an SDF's inside (f < 0) by midpoint integration on a grid over ``sdf.bounds``.
+
+    ``resolution`` samples per axis (a 40^3 grid puts a sphere's volume within 0.5%); the mass is
+    ``mass`` when given, else ``density`` (default water) times the volume.
+    """
+    lo, hi = (np.asarray(torch.as_tensor(b).detach().cpu(), dtype=np.float64).reshape(3) for b in sdf.bounds)
+    step = (hi - lo) / resolution
+    axes = [lo[i] + (np.arange(resolution) + 0.5) * step[i] for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = np.zeros(len(grid), dtype=bool)
+    with torch.no_grad():
+        for start in range(0, len(grid), 65536):  # bounded memory for a network SDF
+            chunk = torch.as_tensor(grid[start:start + 65536], dtype=torch.float32)
+            inside[start:start + 65536] = torch.as_tensor(sdf(chunk)).reshape(-1).cpu().numpy() < 0
+    points = grid[inside]
+    if len(points) == 0:
+        raise InputError(f"the SDF has no inside on a {resolution}^3 grid over its bounds; give mass, inertia and com explicitly")
+    volume = len(points) * float(np.prod(step))
+    return _point_cloud_properties(points, _mass(mass, density, volume), step)
+
+
+def mesh_mass_properties(vertices: np.ndarray, faces: np.ndarray, mass: float | None = None,
+                         density: float | None = None) -> MassProperties:
+    """Mass properties of a mesh's volume (its convex hull where the mesh encloses none)."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    if not mesh.is_volume:
+        mesh = mesh.convex_hull
+    if mesh.volume <= 0:
+        raise InputError("the mesh encloses no volume (flat?); give the body mass, inertia and com explicitly, or make it fixed")
+    m = _mass(mass, density, float(mesh.volume))
+    scale = m / float(mesh.volume)  # trimesh's properties are for density 1
+    return MassProperties(m, np.asarray(mesh.center_mass, dtype=np.float64), np.asarray(mesh.moment_inertia) * scale)
+
+
+def _mass(mass, density, volume: float) -> float:
+    if mass is not None:
+        if not (mass > 0 and math.isfinite(mass)):
+            raise InputError(f"mass must be positive and finite, got {mass}")
+        return float(mass)
+    density = DEFAULT_DENSITY if density is None else density
+    if not (density > 0 and math.isfinite(density)):
+        raise InputError(f"density must be positive and finite, got {density}")
+    return float(density) * volume
+
+
+def _point_cloud_properties(points: np.ndarray, mass: float, cell: np.ndarray) -> MassProperties:
+    """Mass properties of equal point masses at cell centres (N, 3), each cell a small box of sides ``cell``."""
+    com = points.mean(axis=0)
+    r = points - com
+    second = r.T @ r / len(points)  # (3, 3) E[r r^T]
+    inertia = mass * (np.trace(second) * np.eye(3) - second)
+    inertia += mass * np.diag([cell[1] ** 2 + cell[2] ** 2, cell[0] ** 2 + cell[2] ** 2, cell[0] ** 2 + cell[1] ** 2]) / 12
+    return MassProperties(mass, com, inertia)
+
+
+def explicit_mass_properties(mass: float, inertia, com=None) -> MassProperties:
+    """Given mass (kg), inertia ((3,) diagonal or (3, 3)) about the centre of mass, and com (3,)."""
+    inertia = np.asarray(inertia, dtype=np.float64)
+    if inertia.shape == (3,):
+        inertia = np.diag(inertia)
+    if inertia.shape != (3, 3) or not np.isfinite(inertia).all():
+        raise InputError(f"inertia must be (3,) or (3, 3) and finite, got shape {inertia.shape}")
+    com = np.zeros(3) if com is None else np.asarray(com, dtype=np.float64).reshape(3)
+    return MassProperties(_mass(mass, None, 0.0), com, inertia)
+
+
+# -- MJCF ----------------------------------------------------------------------------------
+
+
+def _vec(values) -> str:
+    return " ".join(f"{float(v):.17g}" for v in np.asarray(values).reshape(-1))
+
+
+def _quat(rotation: np.ndarray) -> np.ndarray:
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rotation, dtype=np.float64).reshape(9))
+    return q
+
+
+def _body_xml(body: Body) -> str:
+    pose = np.asarray(body.pose, dtype=np.float64)
+    lines = [f'<body name="{body.name}" pos="{_vec(pose[:3, 3])}" quat="{_vec(_quat(pose[:3, :3]))}">']
+    if body.joint == "free":
+        lines.append(f'<freejoint name="{body.name}"/>')
+    elif body.joint in ("hinge", "slide"):
+        lines.append(f'<joint name="{body.name}" type="{body.joint}" axis="{_vec(body.axis)}" pos="{_vec(body.anchor)}"/>')
+    if body.mass is not None and body.joint != "fixed":
+        mp = body.mass
+        full = mp.inertia
+        lines.append(
+            f'<inertial pos="{_vec(mp.com)}" mass="{mp.mass:.17g}" fullinertia="'
+            f'{_vec([full[0, 0], full[1, 1], full[2, 2], full[0, 1], full[0, 2], full[1, 2]])}"/>'
+        )
+    # the carrier geom: MuJoCo's collision ignores it; sdfzoo's contacts name it
+    lines.append(f'<geom name="{body.name}" type="sphere" size="0.001" contype="0" conaffinity="0" group="3" mass="0"/>')
+    lines.append("</body>")
+    return "\n".join(lines)
+
+
+def _actuator_xml(body: Body) -> str:
+    drive = body.drive
+    if not drive:
+        return ""
+    if body.joint not in ("hinge", "slide"):
+        raise InputError(f"body {body.name!r}: a drive needs a hinge or slide joint, not {body.joint!r}")
+    kind = drive.get("type", "motor")
+    if kind == "motor":
+        return f'<motor name="{body.name}" joint="{body.name}" gear="{float(drive.get("gear", 1.0)):.17g}"/>'
+    if kind == "velocity":
+        return f'<velocity name="{body.name}" joint="{body.name}" kv="{float(drive.get("kv", 100.0)):.17g}"/>'
+    raise InputError(f"body {body.name!r}: unknown drive type {kind!r}; use one of {DRIVES}")
+
+
+def mjcf(bodies: list[Body], dt: float, gravity, integrator: str) -> str:
+    """The MJCF text of a simulation's bodies (fixed bodies are welded to the world)."""
+    actuators = "\n".join(a for a in (_actuator_xml(b) for b in bodies) if a)
+    return f"""<mujoco model="zoo.sim">
+<option timestep="{dt:.17g}" gravity="{_vec(gravity)}" integrator="{integrator}">
+  <flag energy="enable"/>
+</option>
+<size memory="256M"/>
+<worldbody>
+<geom name="world" type="sphere" size="0.001" contype="0" conaffinity="0" group="3"/>
+{chr(10).join(_body_xml(b) for b in bodies)}
+</worldbody>
+<actuator>
+{actuators}
+</actuator>
+</mujoco>"""
+
+
+def build_model(bodies: list[Body], dt: float, gravity, integrator: str):
+    """(MjModel, MjData) of ``bodies``; fills each body's ids and sets initial velocities and drive targets."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(mjcf(bodies, dt, gravity, integrator))
+    data = mujoco.MjData(model)
+    for body in bodies:
+        body.body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body.name)
+        body.geom_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, body.name)
+        if body.joint != "fixed":
+            joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, body.name)
+            body.qpos_adr, body.dof_adr = int(model.jnt_qposadr[joint]), int(model.jnt_dofadr[joint])
+        if body.drive:
+            body.actuator_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, body.name)
+            data.ctrl[body.actuator_id] = float(body.drive.get("target", body.drive.get("ctrl", 0.0)))
+        _set_velocity(body, data)
+    return model, data
+
+
+def _set_velocity(body: Body, data) -> None:
+    """Initial velocity: a free joint's qvel is linear (world) then angular (body frame)."""
+    if body.velocity is None or body.joint == "fixed":
+        return
+    v = np.asarray(body.velocity, dtype=np.float64).reshape(-1)
+    if body.joint == "free":
+        if v.shape != (6,):
+            raise InputError(f"body {body.name!r}: a free body's velocity is (6,) linear, angular; got {v.shape}")
+        data.qvel[body.dof_adr:body.dof_adr + 3] = v[:3]
+        data.qvel[body.dof_adr + 3:body.dof_adr + 6] = np.asarray(body.pose)[:3, :3].T @ v[3:]
+    else:
+        if v.size != 1:
+            raise InputError(f"body {body.name!r}: a {body.joint} joint's velocity is one number; got {v.shape}")
+        data.qvel[body.dof_adr] = float(v[0])

@@ -1,0 +1,366 @@
+"""The step loop: MuJoCo integrates and solves, sdfzoo detects.
+
+Each step: ``mj_step1`` (kinematics; MuJoCo's own collision finds nothing: every geom is a
+carrier with contype 0), then every (SDF body, mesh body) pair whose world boxes overlap is
+collided by ``zoo.collide`` in the world frame, its contacts refined and reduced
+(:mod:`zoo.sim.contacts`) and appended with ``mj_addContact``; the constraint stage is rebuilt
+(``mj_makeConstraint``, ``mj_island``, ``mj_projectConstraint``, ``mj_referenceConstraint``) and
+``mj_step2`` solves and integrates. Anything that calls ``mj_forward`` or ``mj_step`` would
+recompute collision and drop the added contacts, so this module never does.
+
+Fast impacts: before colliding a pair, the distance its bodies can close in one step (relative
+speed times dt, rotation included) is compared with the margin. Where it is larger, the pair is
+collided with a margin that covers it (speculative contacts: MuJoCo's solver sees the contact
+before the bodies cross it) and the step's log says so.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+import zoo
+
+from ..errors import InputError
+from .contacts import REFINE_CELLS, add_contacts, as_numpy, contact_rows, facing_faces, reduce_contacts, refine_near
+from .model import (
+    JOINTS,
+    Body,
+    build_model,
+    explicit_mass_properties,
+    mesh_arrays,
+    mesh_mass_properties,
+    sdf_mass_properties,
+)
+
+INTEGRATORS = {"implicitfast": "implicitfast", "euler": "Euler"}
+# contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
+# copies of a vertex's contact by up to a tenth of the edge: 3 mm on 3 cm triangles)
+MERGE_FRACTION = 0.05
+SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
+
+
+@dataclass
+class StepRecord:
+    """One step of ``Simulation.log``."""
+
+    time: float
+    contacts: int
+    raw_contacts: int
+    max_penetration: float
+    collide_s: float
+    step_s: float
+    margin: float
+    speculative: bool = False
+    warnings: list = field(default_factory=list)
+
+
+class Simulation:
+    """A MuJoCo simulation whose SDF-mesh contacts come from sdfzoo (see the module docstring).
+
+    Args:
+        dt: time step, s.
+        gravity: (3,) m/s^2.
+        method: ``zoo.collide``'s narrow phase ("fw", "pgd", "voxel-fw", "amortized"); an SDF
+            without a detector falls back to "fw" under "amortized".
+        margin: contact margin, m: contacts are found this far before touching.
+        friction: Coulomb friction of every contact.
+        solref, solimp: MuJoCo's contact softness, for every contact.
+        integrator: "implicitfast" or "euler" (RK4 would recompute collision and lose the contacts).
+        coherence: reserved; every step collides from scratch.
+        reduce: reduce contacts to a manifold per patch (False: every contact zoo.collide gives, for
+            comparison).
+        refine: clip and subdivide triangles larger than the SDF near it (False: the mesh as given).
+    """
+
+    def __init__(self, dt: float = 0.002, gravity=(0.0, 0.0, -9.81), method: str = "amortized", margin: float = 1e-3,
+                 friction: float = 1.0, solref=(0.02, 1.0), solimp=(0.9, 0.95, 0.001, 0.5, 2.0),
+                 integrator: str = "implicitfast", coherence: bool = True, reduce: bool = True, refine: bool = True):
+        if not (dt > 0 and math.isfinite(dt)):
+            raise InputError(f"dt must be positive, got {dt}")
+        if integrator.lower() not in INTEGRATORS:
+            raise InputError(f"integrator {integrator!r} is not supported; use one of {sorted(INTEGRATORS)} (RK4 drops added contacts)")
+        if not (margin >= 0 and math.isfinite(margin)):
+            raise InputError(f"margin must be >= 0, got {margin}")
+        if not (friction >= 0 and math.isfinite(friction)):
+            raise InputError(f"friction must be >= 0, got {friction}")
+        self.dt, self.gravity, self.method, self.margin = float(dt), tuple(float(g) for g in gravity), method, float(margin)
+        self.friction, self.solref, self.solimp = float(friction), tuple(solref), tuple(solimp)
+        self.integrator, self.coherence = INTEGRATORS[integrator.lower()], coherence
+        self.reduce, self.refine = reduce, refine
+        self.bodies: dict[str, Body] = {}
+        self.log: list[StepRecord] = []
+        self.contacts = None
+        self.model = self.data = None
+        self._warnings_seen = None
+
+    # -- building -----------------------------------------------------------------------
+
+    def add_body(self, name: str, sdf=None, mesh=None, mass: float | None = None, density: float | None = None,
+                 inertia=None, com=None, pose=None, joint: str = "free", axis=(0.0, 0.0, 1.0), anchor=(0.0, 0.0, 0.0),
+                 velocity=None, drive: dict | None = None) -> Body:
+        """Add a body holding an SDF and/or a mesh (both in the body's frame); see :class:`zoo.sim.model.Body`.
+
+        Mass properties: ``inertia`` (with ``mass``, optional ``com``) as given; else integrated
+        from the SDF (or the mesh) with ``mass`` or ``density``. Bodies can be added until the
+        first step.
+        """
+        if self.model is not None:
+            raise InputError("bodies must be added before the first step")
+        if name in self.bodies or not name or not name.replace("_", "").replace("-", "").isalnum():
+            raise InputError(f"body name {name!r} is empty, not alphanumeric (with - and _) or already used")
+        if sdf is None and mesh is None:
+            raise InputError(f"body {name!r} needs an sdf, a mesh or both")
+        if joint not in JOINTS:
+            raise InputError(f"body {name!r}: unknown joint {joint!r}; use one of {JOINTS}")
+        if sdf is not None:
+            zoo.sdf.check_sdf(sdf)
+        arrays = mesh_arrays(mesh) if mesh is not None else None
+        pose = np.eye(4) if pose is None else np.asarray(torch.as_tensor(pose).detach().cpu(), dtype=np.float64)
+        if pose.shape != (4, 4) or not np.isfinite(pose).all():
+            raise InputError(f"body {name!r}: pose must be a finite 4x4 world-from-body matrix")
+        body = Body(name=name, sdf=sdf, mesh=arrays, pose=pose, joint=joint, axis=np.asarray(axis, dtype=np.float64),
+                    anchor=np.asarray(anchor, dtype=np.float64), velocity=velocity, drive=drive)
+        if joint != "fixed":
+            body.mass = self._mass_properties(body, mass, density, inertia, com)
+        self.bodies[name] = body
+        return body
+
+    @staticmethod
+    def _mass_properties(body: Body, mass, density, inertia, com):
+        if inertia is not None:
+            if mass is None:
+                raise InputError(f"body {body.name!r}: an explicit inertia needs a mass")
+            return explicit_mass_properties(mass, inertia, com)
+        if body.sdf is not None:
+            return sdf_mass_properties(body.sdf, mass, density)
+        return mesh_mass_properties(*body.mesh, mass=mass, density=density)
+
+    def _build(self):
+        import mujoco
+
+        self.model, self.data = build_model(list(self.bodies.values()), self.dt, self.gravity, self.integrator)
+        self._warnings_seen = np.array([w.number for w in self.data.warning])
+        self._pairs = [(a, b) for a in self.bodies.values() if a.sdf is not None
+                       for b in self.bodies.values() if b.mesh is not None and b is not a]
+        self._sdf_boxes = {b.name: _bounds(b.sdf) for b in self.bodies.values() if b.sdf is not None}
+        self._mesh_boxes = {b.name: (b.mesh[0].min(axis=0), b.mesh[0].max(axis=0)) for b in self.bodies.values() if b.mesh is not None}
+        mujoco.mj_step1(self.model, self.data)  # kinematics of the initial state, for pose()
+        self._kinematics_fresh = True
+
+    # -- stepping -----------------------------------------------------------------------
+
+    def step(self, n: int = 1) -> None:
+        """Advance ``n`` steps of ``dt``."""
+        if self.model is None:
+            self._build()
+        for _ in range(int(n)):
+            self._step_once()
+
+    def run(self, seconds: float, callback=None) -> None:
+        """Advance ``seconds`` (rounded to whole steps); ``callback(sim)`` after each step."""
+        for _ in range(max(0, int(round(seconds / self.dt)))):
+            self.step()
+            if callback is not None:
+                callback(self)
+
+    def _step_once(self) -> None:
+        import mujoco
+
+        m, d = self.model, self.data
+        t0 = time.perf_counter()
+        if not self._kinematics_fresh:
+            mujoco.mj_step1(m, d)
+        self._kinematics_fresh = False
+        t1 = time.perf_counter()
+        rows, raw, used_margin, speculative, collected = self._detect()
+        t2 = time.perf_counter()
+        added = sum(add_contacts(m, d, r, self.friction, self.solref, self.solimp) for r in rows)
+        mujoco.mj_makeConstraint(m, d)
+        mujoco.mj_island(m, d)
+        mujoco.mj_projectConstraint(m, d)
+        mujoco.mj_referenceConstraint(m, d)
+        mujoco.mj_step2(m, d)
+        warnings = self._new_warnings()
+        if added < sum(len(r) for r in rows):
+            warnings.append(f"contact buffer full: {sum(len(r) for r in rows) - added} contacts dropped")
+        self.contacts = _concat_contacts(collected)
+        depth = min((float(r.dist.min()) for r in rows if len(r)), default=math.inf)
+        self.log.append(StepRecord(
+            time=float(d.time), contacts=added, raw_contacts=raw, max_penetration=max(0.0, -depth),
+            collide_s=t2 - t1, step_s=time.perf_counter() - t0, margin=used_margin, speculative=speculative,
+            warnings=warnings,
+        ))
+        if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
+            self.log[-1].warnings.append("non-finite state")
+
+    def _detect(self):
+        """Contacts of every overlapping pair: (rows per pair, raw count, largest margin used, any speculative, Contacts)."""
+        rows, raw, used, speculative, collected = [], 0, self.margin, False, []
+        for sdf_body, mesh_body in self._pairs:
+            closing = self._closing_distance(sdf_body, mesh_body)
+            margin = self.margin
+            if closing > self.margin:  # would cross the margin in one step: see it coming
+                margin, speculative = SPECULATIVE_FACTOR * closing, True
+            used = max(used, margin)
+            found = self._collide_pair(sdf_body, mesh_body, margin)
+            if found is None or len(found[0]) == 0:
+                continue
+            contacts, keep = found
+            raw += len(contacts)
+            rows.append(contact_rows(contacts, keep, (sdf_body.geom_id, mesh_body.geom_id)))
+            collected.append(_select(contacts, keep))
+        return rows, raw, used, speculative, collected
+
+    def _collide_pair(self, sdf_body: Body, mesh_body: Body, margin: float):
+        """(zoo.Contacts in the world frame, kept indices) of one pair, or None when their boxes miss."""
+        t_sdf, t_mesh = self.pose(sdf_body.name), self.pose(mesh_body.name)
+        lo, hi = self._sdf_boxes[sdf_body.name]
+        world_lo, world_hi = _world_box(t_sdf, lo - margin, hi + margin)
+        mesh_lo, mesh_hi = _world_box(t_mesh, *self._mesh_boxes[mesh_body.name])
+        if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
+            return None
+        vertices, faces = mesh_body.mesh
+        # the mesh in the SDF's frame, cut to the SDF's box and with large faces refined there
+        sdf_from_mesh = np.linalg.inv(t_sdf) @ t_mesh
+        local = vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
+        max_edge = float((hi - lo).min()) / REFINE_CELLS if self.refine else math.inf
+        local, faces, origin = refine_near(local, faces, lo - margin, hi + margin, max_edge)
+        if len(faces) == 0:
+            return None
+        used_v, inverse = np.unique(faces, return_inverse=True)
+        mesh = (torch.as_tensor(local[used_v], dtype=torch.float32), torch.as_tensor(inverse.reshape(-1, 3)))
+        world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
+        contacts = zoo.collide(sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin, method=self._method_for(sdf_body.sdf))
+        facing = _facing(contacts, local, faces, t_sdf)
+        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the body's own faces
+        points, depths, normals = as_numpy(contacts)
+        keep = np.nonzero(facing)[0]
+        if self.reduce and len(keep):
+            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep],
+                                        merge_tol=MERGE_FRACTION * float((hi - lo).min()))]
+        return contacts, keep
+
+    def _method_for(self, sdf) -> str:
+        if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
+            return "fw"
+        return self.method
+
+    def _closing_distance(self, a: Body, b: Body) -> float:
+        """Upper bound (m) on how much closer the two bodies' surfaces can get in one step."""
+        va, wa = self.velocity(a.name)[:3], self.velocity(a.name)[3:]
+        vb, wb = self.velocity(b.name)[:3], self.velocity(b.name)[3:]
+        lo, hi = self._sdf_boxes[a.name]
+        reach = float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))))
+        return (float(np.linalg.norm(va - vb)) + reach * float(np.linalg.norm(wa)) + reach * float(np.linalg.norm(wb))) * self.dt
+
+    def _new_warnings(self) -> list[str]:
+        import mujoco
+
+        counts = np.array([w.number for w in self.data.warning])
+        fresh = np.nonzero(counts > self._warnings_seen)[0]
+        self._warnings_seen = counts
+        return [f"mujoco: {mujoco.mjtWarning(int(i)).name}" for i in fresh]
+
+    # -- state --------------------------------------------------------------------------
+
+    def _body(self, name: str) -> Body:
+        if name not in self.bodies:
+            raise InputError(f"no body named {name!r}; bodies: {sorted(self.bodies)}")
+        if self.model is None:
+            self._build()
+        return self.bodies[name]
+
+    def pose(self, name: str) -> np.ndarray:
+        """(4, 4) world-from-body of body ``name`` at the current time."""
+        body, d = self._body(name), self.data
+        pose = np.eye(4)
+        pose[:3, :3] = d.xmat[body.body_id].reshape(3, 3)
+        pose[:3, 3] = d.xpos[body.body_id]
+        return pose
+
+    def velocity(self, name: str) -> np.ndarray:
+        """(6,) linear velocity of the body's origin and angular velocity, world frame."""
+        import mujoco
+
+        body = self._body(name)
+        res = np.zeros(6)
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, body.body_id, res, 0)
+        return np.concatenate([res[3:], res[:3]])
+
+    def normal_force(self, name: str) -> float:
+        """Total normal force (N) of the last step's contacts on body ``name``."""
+        import mujoco
+
+        body, m, d = self._body(name), self.model, self.data
+        total, force = 0.0, np.zeros(6)
+        for i in range(d.ncon):
+            if body.geom_id in (d.contact.geom1[i], d.contact.geom2[i]):
+                mujoco.mj_contactForce(m, d, i, force)
+                total += force[0]
+        return float(total)
+
+    def set_control(self, name: str, value: float) -> None:
+        """A driven joint's control: torque/force for a motor, target speed for a velocity drive."""
+        body = self._body(name)
+        if body.actuator_id < 0:
+            raise InputError(f"body {name!r} has no drive")
+        self.data.ctrl[body.actuator_id] = float(value)
+
+    @property
+    def time(self) -> float:
+        return 0.0 if self.data is None else float(self.data.time)
+
+    def energy(self) -> float:
+        """Potential plus kinetic energy (J) as of the last step's kinematics."""
+        if self.data is None:
+            self._build()
+        return float(self.data.energy.sum())
+
+    @property
+    def warnings(self) -> list[str]:
+        """Every warning the log recorded, with the time of its step."""
+        return [f"t={r.time:.4f}s: {w}" for r in self.log for w in r.warnings]
+
+
+def _facing(contacts, local: np.ndarray, faces: np.ndarray, t_sdf: np.ndarray) -> np.ndarray:
+    """(K,) bool: the contact's face is not grazed by the SDF's normal (see contacts.facing_faces)."""
+    _, _, normals = as_numpy(contacts)
+    tri = local[faces[np.asarray(contacts.triangles)]]  # (K, 3, 3) in the SDF's frame
+    return facing_faces(normals @ t_sdf[:3, :3], tri)
+
+
+def _bounds(sdf) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = (np.asarray(torch.as_tensor(b).detach().cpu(), dtype=np.float64).reshape(3) for b in sdf.bounds)
+    return lo, hi
+
+
+def _world_box(pose: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World AABB of the box [lo, hi] (body frame) under ``pose``."""
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    c = pose[:3, :3] @ centre + pose[:3, 3]
+    h = np.abs(pose[:3, :3]) @ half
+    return c - h, c + h
+
+
+def _select(contacts, keep: np.ndarray):
+    idx = torch.as_tensor(keep, dtype=torch.long)
+    return zoo.Contacts(points=contacts.points[idx], depths=contacts.depths[idx], normals=contacts.normals[idx],
+                        triangles=contacts.triangles[idx], bary=contacts.bary[idx], n_triangles=contacts.n_triangles,
+                        n_candidates=contacts.n_candidates, method=contacts.method, timings=contacts.timings)
+
+
+def _concat_contacts(parts):
+    if not parts:
+        z = torch.zeros(0, 3)
+        return zoo.Contacts(points=z, depths=torch.zeros(0), normals=z, triangles=torch.zeros(0, dtype=torch.long), bary=z)
+    if len(parts) == 1:
+        return parts[0]
+    cat = lambda key: torch.cat([getattr(p, key).to(parts[0].points.dtype) if key != "triangles" else p.triangles for p in parts])  # noqa: E731
+    return zoo.Contacts(points=cat("points"), depths=cat("depths"), normals=cat("normals"), triangles=cat("triangles"),
+                        bary=cat("bary"), n_triangles=sum(p.n_triangles for p in parts),
+                        n_candidates=sum(p.n_candidates for p in parts), method=parts[0].method)
