@@ -10,6 +10,7 @@ an analytic ring instead.
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -172,7 +173,7 @@ def error_vs_runtime(scene, iters=(1, 2, 5, 10, 20, 50), repeats: int = 3) -> li
     if scene.method == "amortized":
         solvers["amortized"] = lambda: scene.sdf.detect(tris)
     for k in iters:
-        solvers[f"fw-{k}"] = (lambda k: lambda: zoo.solvers.frank_wolfe(scene.sdf, tris, iters=k))(k)
+        solvers[f"fw-{k}"] = partial(zoo.solvers.frank_wolfe, scene.sdf, tris, iters=k)
     rows = []
     for name, solve in solvers.items():
         seconds, bary = median_seconds(solve, repeats)

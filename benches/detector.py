@@ -37,6 +37,7 @@ import math
 import statistics
 import time
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -224,10 +225,10 @@ def method_table(detector, config: BenchConfig) -> dict:
         methods["amortized"] = lambda shape, sdf, tri: detect(detector, shape, tri, polish=False)
         methods[POLISHED] = lambda shape, sdf, tri: detect(detector, shape, tri, polish=True)
         for k in config.refine_iters:
-            methods[f"amortized+fw{k}"] = (lambda k: lambda shape, sdf, tri: frank_wolfe(
-                sdf, tri, iters=k, init=detect(detector, shape, tri, polish=False)))(k)
+            methods[f"amortized+fw{k}"] = lambda shape, sdf, tri, k=k: frank_wolfe(
+                sdf, tri, iters=k, init=detect(detector, shape, tri, polish=False))
     for k in config.fw_iters:
-        methods[f"fw{k}"] = (lambda k: lambda shape, sdf, tri: frank_wolfe(sdf, tri, iters=k))(k)
+        methods[f"fw{k}"] = lambda shape, sdf, tri, k=k: frank_wolfe(sdf, tri, iters=k)
     methods["pgd"] = lambda shape, sdf, tri: projected_gradient(sdf, tri)
     methods[BEST_VERTEX] = lambda shape, sdf, tri: best_vertex(sdf, tri)
     methods[VERTEX_POLISHED] = lambda shape, sdf, tri: polished_best_vertex(sdf, tri)
@@ -239,10 +240,9 @@ def method_table(detector, config: BenchConfig) -> dict:
 def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
     """The ceiling of the curvature head's model: the exact minimum of the quadratic that matches the SDF at
     the three vertices and the three edge midpoints (six value queries per triangle, no network)."""
+    from pipeline.train_detector import midpoint_curvatures
     from zoo.detector import quadratic_argmin
     from zoo.solvers import vertex_values
-
-    from pipeline.train_detector import midpoint_curvatures
 
     return quadratic_argmin(vertex_values(sdf, triangles), midpoint_curvatures(sdf, triangles).clamp_min(0))
 
@@ -374,7 +374,7 @@ def run_timings(detector, shape, triangles: torch.Tensor, config: BenchConfig, v
             k = int(name[2:]) if name.startswith("fw") else None
             if k is not None and k > config.max_timed_fw_iters:
                 continue
-            out[name] = {"seconds_per_triangle": median_seconds(lambda: solve(view, shape_n, batch), config.repeats) / len(batch),
+            out[name] = {"seconds_per_triangle": median_seconds(partial(solve, view, shape_n, batch), config.repeats) / len(batch),
                          "measured": True}
         per_iter = _fw_seconds_per_iteration(out)
         for k in config.fw_iters:
@@ -382,7 +382,7 @@ def run_timings(detector, shape, triangles: torch.Tensor, config: BenchConfig, v
                 out[f"fw{k}"] = {"seconds_per_triangle": per_iter * k, "measured": False}
         for r, grid in (voxel_grids or {}).items():
             name = f"voxel{r}+fw{config.voxel_fw_iters}"
-            secs = median_seconds(lambda: frank_wolfe(grid, batch, iters=config.voxel_fw_iters), config.repeats)
+            secs = median_seconds(partial(frank_wolfe, grid, batch, iters=config.voxel_fw_iters), config.repeats)
             out[name] = {"seconds_per_triangle": secs / len(batch), "measured": True, "memory_bytes": int(grid.memory_bytes)}
     return out
 
@@ -560,7 +560,7 @@ def pareto_plot(report: dict, path: Path) -> None:
             ax.annotate(n, (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("time per triangle [ms] (batch of %d)" % report["config"]["timing_batch"])
+    ax.set_xlabel(f"time per triangle [ms] (batch of {report['config']['timing_batch']:d})")
     ax.set_ylabel("mean optimality (eq. 12)")
     ax.set_title(f"error against run time {report.get('label', '')}")
     ax.legend(fontsize=8)
@@ -678,7 +678,6 @@ def main(argv=None) -> None:
     import dataclasses
 
     import zoo
-
     from pipeline.train_detector import load_detector
 
     config = QUICK if args.quick else BenchConfig()

@@ -78,9 +78,8 @@ from zoo.collision import DEFAULT_ITERS, candidate_triangles
 from zoo.errors import InputError, ModelNotFoundError
 from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
-from zoo.voxel import VoxelSDF
-
 from zoo.scenes import Scene, load_scene, scene_from_dict
+from zoo.voxel import VoxelSDF
 
 from .solvers import machine_info, steady_allocator
 
@@ -181,9 +180,8 @@ def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_c
     grown by 5% of the shape's size; the spacing is the shape's longest side / ``spacing_cells``,
     coarsened if the region would need more than ``max_points`` samples. Cached by name.
     """
-    from zoo.meshes import ExactMeshSDF, load_mesh
-
     from pipeline.categories import load_category, resolve_data_dir
+    from zoo.meshes import ExactMeshSDF, load_mesh
 
     category = load_category(model)
     mesh_path = resolve_data_dir(None, category) / category.entry(shape).file
@@ -277,7 +275,7 @@ def interleaved_times(fns: dict, repeats: int) -> tuple[dict, dict]:
     one's results."""
     results = {name: [] for name in fns}
     times = {name: [] for name in fns}
-    for name, fn in fns.items():
+    for fn in fns.values():
         fn()
     for _ in range(max(1, repeats)):
         for name, fn in fns.items():

@@ -7,9 +7,9 @@ runner to ``_SECTIONS``; the shared options travel in :class:`BenchOptions`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import typer
 

@@ -24,9 +24,9 @@ from benches.scenes import (
     voxel_region,
 )
 from pipeline.categories import load_category
-from zoo.scenes import scene_from_dict
 from zoo.collision import DEFAULT_ITERS
 from zoo.registry import toml_parser
+from zoo.scenes import scene_from_dict
 
 tomllib = toml_parser()
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import zoo
-from zoo import parts
-from zoo.scenes import load_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
 from benches.stress import CASES, run_stress
+from zoo import parts
 from zoo.errors import DataError, InputError
+from zoo.scenes import load_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
 
 
 def sphere_on_plane(method="fw"):

@@ -130,7 +130,7 @@ class Similarity:
         object.__setattr__(self, "translation", t)
 
     @classmethod
-    def identity(cls) -> "Similarity":
+    def identity(cls) -> Similarity:
         return cls(1.0, np.eye(3), np.zeros(3))
 
     def to_normalised(self, points) -> np.ndarray:
@@ -171,7 +171,7 @@ class Similarity:
         return {"scale": self.scale, "rotation": self.rotation.tolist(), "translation": self.translation.tolist()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Similarity":
+    def from_dict(cls, d: dict) -> Similarity:
         try:
             return cls(d["scale"], d["rotation"], d["translation"])
         except (KeyError, TypeError, ValueError) as exc:
@@ -182,7 +182,7 @@ class Similarity:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
-    def from_json(cls, text: str) -> "Similarity":
+    def from_json(cls, text: str) -> Similarity:
         try:
             d = json.loads(text)
         except (json.JSONDecodeError, TypeError) as exc:
