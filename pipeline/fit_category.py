@@ -30,12 +30,11 @@ import torch
 from zoo.files import atomic_path
 
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
-from .fit_sdf import FitConfig, load_training_data, fit_sdf, print_log, save_result
+from .fit_sdf import FitConfig, fit_sdf, load_training_data, print_log, save_result
 from .fit_sdf import preset as fit_preset
 from .presets import Presets
 from .samples import SampleConfig, prepare_mesh
 from .stages import Stage, run_stage
-
 
 # --------------------------------------------------------------------------- presets
 

@@ -25,7 +25,6 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 
@@ -33,11 +32,11 @@ from zoo.config import DictConfig
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path
 from zoo.neural import NeuralSDF, NeuralSDFConfig
+from zoo.validation import positive_float, positive_int
 
 from .presets import Presets
 from .stages import code_digest
 from .training import Checkpoint, cosine_factor, data_digest, halving_factor, run_fingerprint, set_learning_rates, train_steps
-
 
 # --------------------------------------------------------------------------- configuration
 
@@ -67,11 +66,10 @@ class FitConfig(DictConfig):
             object.__setattr__(self, "sdf", NeuralSDFConfig.from_dict(self.sdf))
         if self.loss not in ("l1", "mse"):
             raise InputError(f"loss must be 'l1' or 'mse', got {self.loss!r}")
-        if min(self.steps, self.shapes_per_step, self.points_per_shape, self.checkpoint_every) < 1:
-            raise InputError("steps, shapes_per_step, points_per_shape and checkpoint_every must be positive")
-        if not (0 < self.clamp < math.inf):
-            # unclamped, one huge target's squared error overflows float32 and the weights turn NaN
-            raise InputError(f"clamp must be a positive finite distance (0.1 is usual), got {self.clamp}")
+        for name in ("steps", "shapes_per_step", "points_per_shape", "checkpoint_every"):
+            positive_int(getattr(self, name), name)
+        # unclamped, one huge target's squared error overflows float32 and the weights turn NaN
+        positive_float(self.clamp, "clamp (a distance, 0.1 is usual)")
 
 
 # The decoder's activation: the smooth LeakyReLU of sharpness 100 (zoo.neural.activation). With

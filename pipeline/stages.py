@@ -49,7 +49,7 @@ def module_file(name: str, root: Path | None = None) -> Path | None:
     return None
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _imports(path: Path, name: str, stamp: tuple) -> frozenset:
     """Project modules imported anywhere in ``path`` (module ``name``), relative imports resolved;
     ``stamp`` (mtime, size) makes an edited file parse again."""

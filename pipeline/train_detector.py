@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -43,6 +42,7 @@ from zoo.detector import AmortizedDetector
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, perimeter
+from zoo.validation import positive_float, positive_int
 
 from .presets import Presets
 from .stages import code_digest
@@ -119,7 +119,7 @@ def ablation_configs(base: TrainConfig) -> dict[str, TrainConfig]:
     return variants
 
 
-def train_ablations(data: "TrainingData", base: TrainConfig, out_dir, progress: bool = True, log=print,
+def train_ablations(data: TrainingData, base: TrainConfig, out_dir, progress: bool = True, log=print,
                     device=None) -> dict[str, Path]:
     """Train every :func:`ablation_configs` variant of ``base`` on ``data`` into ``OUT/<variant>``
     (each resumable on its own); -> {variant: directory}, for ``bench_detector --ablations``."""
@@ -167,7 +167,7 @@ def midpoint_curvatures(sdf, triangles: torch.Tensor, chunk: int = 65536) -> tor
     return torch.cat(out).to(triangles.dtype)
 
 
-def curvature_loss(detector: AmortizedDetector, data: "TrainingData", rows: torch.Tensor) -> torch.Tensor:
+def curvature_loss(detector: AmortizedDetector, data: TrainingData, rows: torch.Tensor) -> torch.Tensor:
     """Mean L_curv over triangles ``rows`` (B,): predicted against midpoint curvature, per perimeter."""
     tri, feat, _, vsdf = data.batch(rows)
     per = perimeter(tri).clamp_min(1e-12)[:, None]
@@ -220,12 +220,12 @@ class TrainingData:
     def __len__(self) -> int:
         return self.vertices.shape[0]
 
-    def to(self, device) -> "TrainingData":
+    def to(self, device) -> TrainingData:
         """These data with every tensor on ``device`` (the SDFs follow their inputs' device)."""
         tensors = {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), torch.Tensor)}
         return replace(self, **{name: t.to(device) for name, t in tensors.items()})
 
-    def with_edge_curvatures(self) -> "TrainingData":
+    def with_edge_curvatures(self) -> TrainingData:
         """These data with each triangle's midpoint curvatures (the L_curv targets), computed once."""
         if self.edge_curvature is not None:
             return self
@@ -355,10 +355,9 @@ def validation_metrics(detector: AmortizedDetector, data: TrainingData, rows: to
 
 
 def _check_config(config: TrainConfig) -> None:
-    if config.steps < 1 or config.batch_size < 1:
-        raise InputError(f"steps and batch_size must be positive, got {config.steps} and {config.batch_size}")
-    if not (config.lr > 0 and math.isfinite(config.lr)):
-        raise InputError(f"lr must be a positive finite number, got {config.lr}")
+    positive_int(config.steps, "steps")
+    positive_int(config.batch_size, "batch_size")
+    positive_float(config.lr, "lr")
     if not (config.use_op_loss or config.use_min_loss or config.lambda_curvature > 0):
         raise InputError("at least one of use_op_loss, use_min_loss and lambda_curvature must be on, or nothing trains")
     if config.lambda_curvature > 0 and config.detector.get("output") != "quadratic":

@@ -8,12 +8,10 @@ draw their triangles here, so the two see the same distribution.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from zoo import geometry, validation
-from zoo.errors import DataError, InputError
+from zoo.errors import DataError
 from zoo.sdf import check_sdf
 from zoo.solvers import frank_wolfe
 
@@ -64,11 +62,11 @@ def sample_constrained_triangles(
         (n, 3, 3) triangles.
     """
     check_sdf(sdf)
-    n = _positive_int(n, "n")
-    batch = min(max(4 * n, 1024), 65536) if batch is None else _positive_int(batch, "batch")
-    edge_lo, edge_hi = _interval(edge_range, "edge_range", positive=True)
-    area_lo, area_hi = _interval(area_range, "area_range", positive=True)
-    dist_lo, dist_hi = _interval(centroid_sdf_range, "centroid_sdf_range")
+    n = validation.positive_int(n, "n")
+    batch = min(max(4 * n, 1024), 65536) if batch is None else validation.positive_int(batch, "batch")
+    edge_lo, edge_hi = validation.interval(edge_range, "edge_range", positive=True)
+    area_lo, area_hi = validation.interval(area_range, "area_range", positive=True)
+    dist_lo, dist_hi = validation.interval(centroid_sdf_range, "centroid_sdf_range")
     gen = torch.Generator().manual_seed(int(seed))
     kept: list[torch.Tensor] = []
     count = 0
@@ -161,19 +159,3 @@ def _points_near_surface(sdf, count: int, lo: float, hi: float, gen: torch.Gener
     f, g = torch.as_tensor(f).to(x), torch.as_tensor(g).to(x)
     g = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return x - (f - target).unsqueeze(-1) * g
-
-
-def _positive_int(value, name: str) -> int:
-    if isinstance(value, bool) or not hasattr(value, "__index__") or int(value) < 1:
-        raise InputError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
-def _interval(value, name: str, positive: bool = False) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} must be two numbers (low, high), got {value!r}") from exc
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi) or (positive and lo <= 0):
-        raise InputError(f"{name} must be finite with low <= high{' and low > 0' if positive else ''}, got {value!r}")
-    return lo, hi

@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from real_meshes import SKIP_REASON, zoo_data
+
 from zoo.files import CHECKSUMS, read_checksums, sha256_file, verify_directory
 
 ROOT = Path(__file__).resolve().parents[1]

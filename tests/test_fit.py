@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from real_meshes import SKIP_REASON, zoo_data
 
 from pipeline.fit_sdf import FitConfig, fit_sdf, stack_samples, step_batch
 from pipeline.training import CheckpointWarning
-from real_meshes import SKIP_REASON, zoo_data
 from zoo.neural import NeuralSDFConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,6 +9,7 @@ import h5py
 import numpy as np
 import pytest
 import trimesh
+from real_meshes import DATA, needs_data
 
 from pipeline.normalise import read_normalised
 from pipeline.samples import (
@@ -21,10 +22,8 @@ from pipeline.samples import (
     samples_path,
     write_samples,
 )
-from real_meshes import DATA, needs_data
 from zoo.errors import DataError
 from zoo.meshes import Similarity, signed_distance
-
 
 SMALL = SampleConfig(n_points=2000, seed=3)
 

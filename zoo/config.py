@@ -48,7 +48,7 @@ def from_dict(cls, d: dict, what: str | None = None, ignore: tuple[str, ...] = (
     return cls(**{k: _typed(types[k], v) for k, v in d.items() if k in types})
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _field_types(cls) -> dict:
     """{field name: resolved annotation} of a dataclass (``from __future__ import annotations`` safe)."""
     hints = typing.get_type_hints(cls)
