@@ -34,7 +34,6 @@ from benches.scenes import check_margin, cutting_mesh, reference_contacts
 from zoo.errors import ZooError
 from zoo.sdf import SDFBase
 
-
 # -- the subjects ---------------------------------------------------------------------------
 
 

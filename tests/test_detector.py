@@ -18,8 +18,8 @@ from pipeline.train_detector import (
     TrainConfig,
     TrainingData,
     detector_losses,
-    midpoint_curvatures,
     load_detector,
+    midpoint_curvatures,
     save_detector,
     train,
 )
@@ -478,9 +478,9 @@ def test_worst_share_and_bands_against_a_plain_loop():
 
 def test_zoo_bench_detector_runs_the_detector_section(monkeypatch, tmp_path):
     """`zoo bench --detector MODEL` hands its options to benches.detector.bench_model and prints its tables."""
-    import benches.detector as bd
     from typer.testing import CliRunner
 
+    import benches.detector as bd
     from cli.main import app, register_commands
 
     calls = {}

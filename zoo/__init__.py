@@ -6,14 +6,13 @@ training pipeline.
 
 from __future__ import annotations
 
-from . import errors, geometry
-from . import solvers
-from .sdf import SDF, Box, Capsule, SDFBase, Sphere, Torus, TransformedSDF
+from . import errors, geometry, solvers
 from .collision import Contacts, collide
-from .voxel import VoxelSDF
-from .registry import list_models, load
 from .model import Model
 from .neural import NeuralSDF, NeuralShape
+from .registry import list_models, load
+from .sdf import SDF, Box, Capsule, SDFBase, Sphere, Torus, TransformedSDF
+from .voxel import VoxelSDF
 
 __version__ = "0.1.0"
 

@@ -186,7 +186,7 @@ class AmortizedDetector(nn.Module):
         }
 
     @classmethod
-    def from_config(cls, config: dict) -> "AmortizedDetector":
+    def from_config(cls, config: dict) -> AmortizedDetector:
         known = {"feature_dim", "hidden", "weight_hidden", "triangle_feature", "vertex_features", "edge_range", "vertex_sdf", "output"}
         unknown = set(config) - known
         if unknown:

@@ -118,7 +118,7 @@ class Model:
 
     # ------------------------------------------------------------------ devices
 
-    def to(self, device) -> "Model":
+    def to(self, device) -> Model:
         """Move the networks to ``device`` (in place); returns self."""
         self.sdf.to(device)
         if self.detector is not None:
@@ -129,7 +129,7 @@ class Model:
 
     @classmethod
     def from_directory(cls, path: str | os.PathLike, name: str | None = None, version: str | None = None,
-                       verify: bool = True, device: str | torch.device = "cpu") -> "Model":
+                       verify: bool = True, device: str | torch.device = "cpu") -> Model:
         """Load a package directory (layout in the module docstring); verify SHA256SUMS first unless told not to."""
         from .files import verify_directory
 
@@ -221,7 +221,7 @@ def fit_code_cloud(sdf: NeuralSDF, points: torch.Tensor, target: torch.Tensor, i
     decoder.requires_grad_(False)
     opt = torch.optim.Adam([{"params": [codes], "lr": lr}, {"params": [positions], "lr": lr_positions}])
     try:
-        for it in _iterations(iters, progress):
+        for _ in _iterations(iters, progress):
             rows = torch.randint(len(points), (points_per_iter,), generator=g).to(device)
             pred = decode(decoder, points[rows].unsqueeze(0), positions, codes, sdf.config.eps).squeeze(0)
             loss = (pred.clamp(-clamp, clamp) - target[rows].clamp(-clamp, clamp)).abs().mean()

@@ -29,8 +29,8 @@ from torch import nn
 
 from .config import DictConfig
 from .errors import InputError
-from .validation import as_points
 from .sdf import SDFBase
+from .validation import as_points
 
 # Queries are evaluated in chunks so that the (chunk, n_codes) weight matrix stays around
 # 1M floats (4 MB in float32: 4096 points of 256 codes), whatever the number of points. Chunks

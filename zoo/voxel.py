@@ -28,8 +28,8 @@ import numbers
 import torch
 
 from .errors import InputError
-from .validation import as_points, positive_float
 from .sdf import check_sdf
+from .validation import as_points, positive_float
 
 GiB = 1 << 30
 DEFAULT_MAX_BYTES = 4 * GiB

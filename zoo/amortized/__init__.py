@@ -43,7 +43,6 @@ from __future__ import annotations
 #   compared with the best vertex (and any known point), keeping the lower; distances collide's
 #   broad phase took at the vertices are not taken again; with a ``cutoff`` (collide's margin) a
 #   triangle or cell proven to stay above it is not solved at all.
-
 from .best import BestSoFar
 from .polish import POLISH_LINE_STEPS, POLISH_ROUNDS
 from .solve import Known, SolveOptions, detect, solve_mesh, to_normalised_frame, vertex_features
