@@ -75,6 +75,8 @@ def refine_near(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.
         if len(polygon) < 3:
             continue
         v, f = _subdivide(polygon, max_edge)
+        if len(f) == 0:
+            continue
         parts_v.append(v)
         parts_f.append(f + offset)
         parts_o.append(np.full(len(f), index))
@@ -105,28 +107,37 @@ def _subdivide(polygon: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.nda
     import trimesh
 
     fan = np.array([[0, i, i + 1] for i in range(1, len(polygon) - 1)])
+    area = np.linalg.norm(np.cross(polygon[fan[:, 1]] - polygon[0], polygon[fan[:, 2]] - polygon[0]), axis=1)
+    fan = fan[area > 1e-12 * max(float(np.ptp(polygon, axis=0).max()), 1e-30) ** 2]  # clipping through a corner repeats it
+    if len(fan) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     v, f = trimesh.remesh.subdivide_to_size(polygon, fan, max_edge=max_edge, max_iter=12)
     return np.asarray(v), np.asarray(f)
 
 
 # -- grazing contacts -----------------------------------------------------------------------
 
-GRAZING_COS = 0.5  # a contact whose SDF normal is more than 60 degrees from its face's normal (either side) is dropped
+GRAZING_COS = 0.5  # a touching contact whose SDF normal is more than 60 degrees from its face's normal is dropped
+SEPARATED_COS = math.cos(math.radians(15.0))  # a separated one (distance > 0): more than 15 degrees
 
 
-def facing_faces(normals: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(K,) bool: the SDF's normal (K, 3) is within 60 degrees of its triangle's (K, 3, 3) normal, either side.
+def facing_faces(normals: np.ndarray, triangles: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """(K,) bool: keep the contact; its SDF normal (K, 3) is close enough to its triangle's (K, 3, 3) normal.
 
     A mesh face beside the SDF, not under it (the ground just in front of a sliding box that sinks
     0.1 mm into it), is within the margin of the SDF's side: its contact's normal lies along the
-    face, and MuJoCo would make it a wall that stops the box. Such grazing contacts are dropped; a
-    face the SDF presses on has a normal along the SDF's, one way or the other (open meshes have no
-    reliable orientation). Degenerate faces (no normal) are kept.
+    face, and MuJoCo would make it a wall that stops the box. A face ahead of a box's edge that
+    hovers over it reports its own edge's point, with a slanted normal: MuJoCo's solver resists the
+    box's approach along that normal and lifts it. Neither is a local minimum of the SDF over the
+    surface: at a minimum inside a face the SDF's gradient is along the face's normal (KKT), at an
+    edge of a flat continuation the neighbour holds a deeper one. So touching contacts (depth <= 0)
+    within 60 degrees of their face's normal and separated ones within 15 degrees are kept, either
+    side (open meshes have no reliable orientation). Degenerate faces (no normal) are kept.
     """
     face = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
     length = np.linalg.norm(face, axis=1)
     cos = np.abs(np.einsum("ij,ij->i", normals, face)) / np.where(length > 0, length, 1.0)
-    return (cos >= GRAZING_COS) | (length == 0)
+    return (cos >= np.where(depths > 0, SEPARATED_COS, GRAZING_COS)) | (length == 0)
 
 
 # -- reduction ------------------------------------------------------------------------------

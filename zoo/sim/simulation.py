@@ -329,9 +329,9 @@ class Simulation:
 
 def _facing(contacts, local: np.ndarray, faces: np.ndarray, t_sdf: np.ndarray) -> np.ndarray:
     """(K,) bool: the contact's face is not grazed by the SDF's normal (see contacts.facing_faces)."""
-    _, _, normals = as_numpy(contacts)
+    _, depths, normals = as_numpy(contacts)
     tri = local[faces[np.asarray(contacts.triangles)]]  # (K, 3, 3) in the SDF's frame
-    return facing_faces(normals @ t_sdf[:3, :3], tri)
+    return facing_faces(normals @ t_sdf[:3, :3], tri, depths)
 
 
 def _bounds(sdf) -> tuple[np.ndarray, np.ndarray]:
