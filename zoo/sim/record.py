@@ -1,0 +1,138 @@
+"""What a simulation run leaves behind: the trajectory (HDF5 with provenance), per-step stats (JSON), a PNG.
+
+:class:`Recorder` is a ``Simulation.run`` callback that keeps each body's pose and velocity per
+step; :meth:`Recorder.write` writes ``<name>.h5``, ``<name>.json`` and ``<name>.png``. h5py and
+matplotlib are imported only there (the ``sim`` extra).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from ..files import atomic_path, atomic_write_text
+
+
+class Recorder:
+    """Collects, after each step, the time and every body's pose (4, 4) and velocity (6,)."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        self.names = list(sim.bodies)
+        self.times: list[float] = []
+        self.poses: list[np.ndarray] = []  # each (B, 4, 4)
+        self.velocities: list[np.ndarray] = []  # each (B, 6)
+        self.energy: list[float] = []
+
+    def __call__(self, sim) -> None:
+        self.times.append(sim.time)
+        self.poses.append(np.stack([sim.pose(n) for n in self.names]))
+        self.velocities.append(np.stack([sim.velocity(n) for n in self.names]))
+        self.energy.append(sim.energy())
+
+    def summary(self) -> dict:
+        """Totals over the run: steps, contacts, deepest penetration, time per step, warnings."""
+        log = self.sim.log
+        return {
+            "steps": len(log),
+            "simulated_s": self.sim.time,
+            "max_penetration_m": max((r.max_penetration for r in log), default=0.0),
+            "max_contacts": max((r.contacts for r in log), default=0),
+            "mean_step_ms": 1e3 * float(np.mean([r.step_s for r in log])) if log else 0.0,
+            "mean_collide_ms": 1e3 * float(np.mean([r.collide_s for r in log])) if log else 0.0,
+            "speculative_steps": sum(r.speculative for r in log),
+            "warnings": self.sim.warnings,
+            "finite": bool(all(np.isfinite(p).all() for p in self.poses)),
+        }
+
+    def write(self, out_dir: str | os.PathLike, provenance: dict) -> dict[str, Path]:
+        """Write ``<name>.h5`` (trajectory, provenance attributes), ``<name>.json`` and ``<name>.png``."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        name = getattr(self.sim, "name", "simulation")
+        paths = {"h5": out / f"{name}.h5", "json": out / f"{name}.json", "png": out / f"{name}.png"}
+        self._write_h5(paths["h5"], provenance)
+        stats = {"provenance": provenance, "summary": self.summary(), "steps": [asdict(r) for r in self.sim.log]}
+        atomic_write_text(paths["json"], json.dumps(stats, indent=1, default=_jsonable))
+        self._write_png(paths["png"], name)
+        return paths
+
+    def _write_h5(self, path: Path, provenance: dict) -> None:
+        from ..errors import require
+
+        h5py = require("h5py", extra="sim")
+        log = self.sim.log
+        with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+            for key, value in provenance.items():
+                f.attrs[key] = value if isinstance(value, (int, float, str)) else json.dumps(value)
+            f.create_dataset("time", data=np.asarray(self.times))
+            f.create_dataset("energy", data=np.asarray(self.energy))
+            for i, body in enumerate(self.names):
+                g = f.create_group(f"bodies/{body}")
+                g.create_dataset("pose", data=np.stack([p[i] for p in self.poses]) if self.poses else np.zeros((0, 4, 4)))
+                g.create_dataset("velocity", data=np.stack([v[i] for v in self.velocities]) if self.velocities else np.zeros((0, 6)))
+            for key in ("contacts", "raw_contacts", "max_penetration", "collide_s", "step_s", "margin"):
+                f.create_dataset(f"stats/{key}", data=np.asarray([getattr(r, key) for r in log]))
+
+    def _write_png(self, path: Path, name: str) -> None:
+        from ..errors import require
+
+        require("matplotlib", extra="sim")
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        log = self.sim.log
+        t = np.asarray([r.time for r in log])
+        fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+        axes[0].plot(t, [1e3 * r.max_penetration for r in log], lw=1)
+        axes[0].set_ylabel("max penetration (mm)")
+        axes[1].plot(t, [r.contacts for r in log], lw=1, label="in the solver")
+        axes[1].plot(t, [r.raw_contacts for r in log], lw=1, alpha=0.6, label="zoo.collide")
+        axes[1].set_ylabel("contacts")
+        axes[1].legend(loc="upper right", fontsize=8)
+        axes[2].plot(t, [1e3 * r.step_s for r in log], lw=1, label="step")
+        axes[2].plot(t, [1e3 * r.collide_s for r in log], lw=1, label="collide")
+        axes[2].set_ylabel("time per step (ms)")
+        axes[2].set_xlabel("simulated time (s)")
+        axes[2].legend(loc="upper right", fontsize=8)
+        fig.suptitle(f"{name}: {len(log)} steps of {self.sim.dt * 1e3:g} ms ({self.sim.method})")
+        fig.tight_layout()
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+        plt.close(fig)
+
+
+def _jsonable(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return str(value)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
+    """What produced a run: versions, the scene file's sha256, the models, method, dt, margin."""
+    import mujoco
+
+    import zoo
+
+    return {
+        "zoo_version": zoo.__version__, "mujoco_version": mujoco.__version__,
+        "scene": str(scene_path) if scene_path else "", "scene_sha256": file_sha256(scene_path) if scene_path else "",
+        "bodies": json.dumps(getattr(sim, "labels", {})), "method": sim.method, "dt": sim.dt, "margin": sim.margin,
+        "friction": sim.friction, "solref": json.dumps(list(sim.solref)), "integrator": sim.integrator,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }

@@ -1,0 +1,133 @@
+"""Simulation scenes: a TOML file names bodies (an SDF and/or a mesh each), masses, joints, drives and a [sim] table.
+
+```toml
+name = "sim-demo-mug-rack"
+method = "amortized"            # zoo.collide's narrow phase
+margin = 0.001
+
+[sim]
+dt = 0.002
+seconds = 0.5                   # what `zoo simulate` runs unless --seconds says otherwise
+gravity = [0, 0, -9.81]
+friction = 1.0
+solref = [0.02, 1.0]
+solimp = [0.9, 0.95, 0.001, 0.5, 2.0]
+integrator = "implicitfast"     # or "euler"
+
+[[bodies]]
+name = "mug"
+sdf = { model = "mugs", shape = "hoi4d_mug_0001" }   # as a collision scene's [sdf] (model, analytic, fit)
+mass = 0.3                      # or density = 1000; or inertia = [ixx, iyy, izz] (with mass, com)
+joint = "free"                  # free | fixed | hinge | slide (axis = [...], anchor = [...])
+pose = { translation = [0, 0, 0.2], rotation_deg = [0, 0, 0] }
+velocity = [0, 0, 0, 0, 0, 0]   # linear, angular (world); one number for a hinge or slide
+# drive = { type = "velocity", target = 1.0, kv = 100 }  # or { type = "motor", ctrl = 0.1, gear = 1 }
+
+[[bodies]]
+name = "rack"
+mesh = { procedural = "rack" }  # as a collision scene's [mesh] (procedural, file, scale)
+joint = "fixed"
+```
+
+A collision scene (``[sdf]`` and ``[mesh]`` tables, as ``zoo collide`` reads) also loads: its SDF
+becomes a free body ``sdf`` (mass from ``[sim]``'s ``sdf_mass``, default 0.3 kg), raised by
+``[sim]``'s ``drop`` (m, default 0), and its mesh a fixed body ``mesh``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError, InputError
+from ..registry import toml_parser
+from ..scenes import _build_mesh, _build_sdf, pose_matrix
+from .simulation import Simulation
+
+SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "sdf_mass", "drop", "reduce", "refine"}
+BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
+
+
+def read_scene(path: str | os.PathLike) -> dict:
+    """The scene file's table (TOML), with a typed error when it is missing or malformed."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"scene file {path} does not exist")
+    tomllib = toml_parser()
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
+
+
+def load_scene(path: str | os.PathLike, **overrides) -> Simulation:
+    """A :class:`Simulation` from a scene file; ``overrides`` (dt, method, margin, ...) replace the file's values."""
+    return scene_simulation(read_scene(path), base_dir=Path(path).parent, **overrides)
+
+
+def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Simulation:
+    """A :class:`Simulation` from a scene's table (see the module docstring)."""
+    sim_spec = dict(spec.get("sim", {}))
+    unknown = set(sim_spec) - SIM_KEYS
+    if unknown:
+        raise InputError(f"unknown [sim] keys {sorted(unknown)}; known: {sorted(SIM_KEYS)}")
+    settings = {
+        "dt": sim_spec.get("dt", 0.002), "gravity": sim_spec.get("gravity", (0.0, 0.0, -9.81)),
+        "method": spec.get("method", "amortized"), "margin": float(spec.get("margin", 1e-3)),
+        "friction": sim_spec.get("friction", 1.0), "solref": sim_spec.get("solref", (0.02, 1.0)),
+        "solimp": sim_spec.get("solimp", (0.9, 0.95, 0.001, 0.5, 2.0)), "integrator": sim_spec.get("integrator", "implicitfast"),
+        "reduce": sim_spec.get("reduce", True), "refine": sim_spec.get("refine", True),
+    }
+    settings.update({k: v for k, v in overrides.items() if v is not None})
+    sim = Simulation(**settings)
+    sim.name = spec.get("name", "scene")
+    sim.seconds = float(sim_spec.get("seconds", 1.0))
+    sim.labels = {}
+    bodies = spec.get("bodies")
+    if bodies is None:
+        bodies = _collision_scene_bodies(spec, sim_spec)
+    if not bodies:
+        raise InputError("a simulation scene needs [[bodies]] (or a collision scene's [sdf] and [mesh])")
+    for body in bodies:
+        _add_body(sim, body, base_dir)
+    return sim
+
+
+def _collision_scene_bodies(spec: dict, sim_spec: dict) -> list[dict]:
+    """A collision scene's [sdf] and [mesh] as a free SDF body over a fixed mesh body."""
+    if "sdf" not in spec or "mesh" not in spec:
+        return []
+    pose = pose_matrix(spec["sdf"].get("pose"))
+    pose[2, 3] += float(sim_spec.get("drop", 0.0))
+    sdf = {k: v for k, v in spec["sdf"].items() if k != "pose"}
+    mesh = {k: v for k, v in spec["mesh"].items() if k != "pose"}
+    return [
+        {"name": "sdf", "sdf": sdf, "mass": float(sim_spec.get("sdf_mass", 0.3)), "joint": "free", "pose": pose.tolist()},
+        {"name": "mesh", "mesh": mesh, "joint": "fixed", "pose": spec["mesh"].get("pose")},
+    ]
+
+
+def _add_body(sim: Simulation, spec: dict, base_dir: Path) -> None:
+    unknown = set(spec) - BODY_KEYS
+    if unknown:
+        raise InputError(f"body {spec.get('name', '?')!r}: unknown keys {sorted(unknown)}; known: {sorted(BODY_KEYS)}")
+    if "name" not in spec:
+        raise InputError("every [[bodies]] entry needs a name")
+    sdf = mesh = None
+    labels = []
+    if "sdf" in spec:
+        sdf, label = _build_sdf(spec["sdf"], base_dir)
+        labels.append(label)
+    if "mesh" in spec:
+        mesh, label = _build_mesh(spec["mesh"], base_dir)
+        labels.append(label)
+    sim.labels[spec["name"]] = " + ".join(labels)
+    sim.add_body(
+        spec["name"], sdf=sdf, mesh=mesh, mass=spec.get("mass"), density=spec.get("density"), inertia=spec.get("inertia"),
+        com=spec.get("com"), pose=pose_matrix(spec.get("pose")), joint=spec.get("joint", "free"),
+        axis=spec.get("axis", (0.0, 0.0, 1.0)), anchor=spec.get("anchor", (0.0, 0.0, 0.0)),
+        velocity=None if spec.get("velocity") is None else np.asarray(spec["velocity"], dtype=np.float64),
+        drive=spec.get("drive"),
+    )
