@@ -157,3 +157,19 @@ def test_a_bare_scene_name_is_found_in_the_installed_packages_data(tmp_path, mon
     assert resolve_scene("scenes/ball.toml") == package / "data" / "scenes" / "ball.toml"
     with pytest.raises(DataError, match="one of: ball"):
         resolve_scene("teapot")
+
+
+def test_a_triangle_crossing_the_pictures_cube_is_clipped_to_it():
+    from zoo.scene_picture import clipped_to_cube
+
+    inside = [[0.1, 0.1, 0.0], [0.2, 0.1, 0.0], [0.1, 0.2, 0.0]]
+    crossing = [[-2.0, -0.5, 0.0], [2.0, -0.5, 0.0], [0.0, 0.5, 0.0]]  # a long, thin triangle: a rack's peg
+    outside = [[5.0, 5.0, 5.0], [6.0, 5.0, 5.0], [5.0, 6.0, 5.0]]
+    polygons, source = clipped_to_cube(np.array([inside, crossing, outside]), np.zeros(3), 1.0)
+    assert source.tolist() == [0, 1]
+    np.testing.assert_array_equal(polygons[0], inside)
+    piece = polygons[1]
+    assert np.abs(piece).max() <= 1.0 + 1e-12
+    x, y = piece[:, 0], piece[:, 1]
+    area = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    assert area == pytest.approx(1.5)  # the part with |x| <= 1: 1 below y = 0, 0.5 above

@@ -25,12 +25,14 @@ SDF_COLOUR, MESH_COLOUR = np.array([0.20, 0.45, 0.85]), np.array([0.62, 0.60, 0.
 VIEW = {"elev": 18.0, "azim": -62.0}  # from the front left, a little above: a hanging object's side and its support
 
 
-def surface_points(sdf, box=None, resolution: int = 56, max_points: int = 12_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def surface_points(sdf, box=None, resolution: int = 28, max_points: int = 10_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Points on the zero level set of ``sdf`` and its unit normals there, in its own frame: (P, 3), (P, 3).
 
     A ``resolution``^3 grid over ``sdf.bounds`` (cut to ``box``, two (3,) corners, if given; grown by two
-    cells); the grid points within one cell of the surface are moved onto it by two Newton steps
-    (p - f g), at most ``max_points`` of them.
+    cells); around the grid points whose cell the surface may cross (|f| within the cell's half diagonal:
+    an SDF is 1-Lipschitz), a grid of half the spacing; its points within half a fine cell of the surface,
+    at most ``max_points`` of them, are moved onto it by a Newton step (p - f g). Two levels query a
+    few times fewer points than one fine grid, the NeuralSDF's cost.
     """
     lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64)) for b in sdf.bounds)
     if box is not None:
@@ -39,19 +41,27 @@ def surface_points(sdf, box=None, resolution: int = 56, max_points: int = 12_000
             return np.zeros((0, 3)), np.zeros((0, 3))
     cell = float((hi - lo).max()) / (resolution - 1)
     axes = [np.arange(a - 2 * cell, b + 2 * cell + 1e-12, cell) for a, b in zip(lo, hi)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
-    with torch.no_grad():
-        f = torch.cat([torch.as_tensor(sdf(torch.from_numpy(chunk))).float() for chunk in np.array_split(grid, max(1, len(grid) // 65536))])
-    near = grid[(f.abs() < cell).numpy()]
+    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
+    crossed = coarse[np.abs(_values(sdf, coarse)) <= 0.87 * cell]
+    offsets = (np.stack(np.meshgrid(*[[-0.25, 0.25]] * 3, indexing="ij"), axis=-1).reshape(-1, 3) * cell).astype(np.float32)
+    fine = (crossed[:, None, :] + offsets).reshape(-1, 3)
+    near = fine[np.abs(_values(sdf, fine)) < 0.5 * cell]
     if len(near) > max_points:
         near = near[np.random.default_rng(seed).choice(len(near), max_points, replace=False)]
+    if not len(near):
+        return np.zeros((0, 3)), np.zeros((0, 3))
     p = torch.from_numpy(near)
-    for _ in range(2):
-        d, g = sdf.value_and_grad(p)
-        g = torch.as_tensor(g).float()
-        p = (p - torch.as_tensor(d).float()[:, None] * g).detach()
-    normals = torch.nn.functional.normalize(g, dim=-1)
-    return p.numpy().astype(np.float64), normals.detach().numpy().astype(np.float64)
+    d, g = sdf.value_and_grad(p)
+    d, g = torch.as_tensor(d).detach().float(), torch.as_tensor(g).detach().float()
+    on_surface = p - d[:, None] * g
+    return on_surface.numpy().astype(np.float64), torch.nn.functional.normalize(g, dim=-1).numpy().astype(np.float64)
+
+
+def _values(sdf, points: np.ndarray) -> np.ndarray:
+    """``sdf`` at float32 points (N, 3), in chunks, without gradients: (N,)."""
+    with torch.no_grad():
+        return torch.cat([torch.as_tensor(sdf(torch.from_numpy(c))).float().reshape(-1)
+                          for c in np.array_split(points, max(1, len(points) // 65536))]).numpy()
 
 
 def shaded(base: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -74,6 +84,43 @@ def posed_surface(sdf, pose: np.ndarray, centre=None, radius=None) -> tuple[np.n
         box = (local.min(0), local.max(0))
     points, normals = surface_points(sdf, box)
     return posed(pose, points), normals @ pose[:3, :3].T
+
+
+def clipped_to_cube(triangles: np.ndarray, centre: np.ndarray, radius: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """The parts of ``triangles`` (F, 3, 3) inside the cube of half-side ``radius`` around ``centre``:
+    polygons (each (k, 3)) and the index of the triangle each came from. 3D axes do not clip, and a long
+    thin triangle (a rack's peg) that crosses the cube must still show its piece."""
+    inside = (np.abs(triangles - centre).max(-1) <= radius).all(-1)
+    overlaps = ((triangles.min(1) <= centre + radius) & (triangles.max(1) >= centre - radius)).all(-1)
+    polygons, source = list(triangles[inside]), list(np.flatnonzero(inside))
+    for i in np.flatnonzero(overlaps & ~inside):  # only the crossing ones are clipped, one by one
+        polygon = triangles[i]
+        for axis in range(3):
+            for sign in (1.0, -1.0):  # Sutherland-Hodgman against the plane sign * (x - centre) <= radius
+                polygon = _clip(polygon, axis, sign, sign * centre[axis] + radius)
+                if len(polygon) < 3:
+                    break
+            if len(polygon) < 3:
+                break
+        if len(polygon) >= 3:
+            polygons.append(polygon)
+            source.append(i)
+    return polygons, np.asarray(source, dtype=np.int64)
+
+
+def _clip(polygon: np.ndarray, axis: int, sign: float, bound: float) -> np.ndarray:
+    """The part of a convex polygon (k, 3) where ``sign * x[axis] <= bound``."""
+    inside = sign * polygon[:, axis] <= bound
+    if inside.all():
+        return polygon
+    out = []
+    for a, b, a_in, b_in in zip(polygon, np.roll(polygon, -1, axis=0), inside, np.roll(inside, -1)):
+        if a_in:
+            out.append(a)
+        if a_in != b_in:  # the edge crosses the plane
+            t = (bound - sign * a[axis]) / (sign * (b[axis] - a[axis]))
+            out.append(a + t * (b - a))
+    return np.asarray(out).reshape(-1, 3)
 
 
 def plot_scene(scene, contacts, path: str | os.PathLike) -> None:
@@ -116,12 +163,12 @@ def plot_scene(scene, contacts, path: str | os.PathLike) -> None:
 
 
 def _draw_panel(ax, centre, radius, triangles, face_normals, sdf_points, sdf_normals, pts, normals) -> None:
-    """One panel: what lies within the cube of half-side ``radius`` around ``centre`` (3D axes do not clip:
-    a triangle reaching out of the cube is left out); ``normals`` (K, 3) of the contacts as arrows, if given."""
+    """One panel: what lies within the cube of half-side ``radius`` around ``centre``; ``normals`` (K, 3) of
+    the contacts as arrows, if given."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    keep = (np.abs(triangles - centre).max(-1) < radius).all(-1)
-    ax.add_collection3d(Poly3DCollection(triangles[keep], facecolors=shaded(MESH_COLOUR, face_normals[keep]), linewidths=0))
+    polygons, source = clipped_to_cube(triangles, centre, radius)
+    ax.add_collection3d(Poly3DCollection(polygons, facecolors=shaded(MESH_COLOUR, face_normals[source]), linewidths=0))
     inside = np.abs(sdf_points - centre).max(1) < radius
     ax.scatter(*sdf_points[inside].T, c=shaded(SDF_COLOUR, sdf_normals[inside]), s=3.0 if normals is None else 5.0,
                depthshade=False, linewidths=0)
