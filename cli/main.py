@@ -22,7 +22,7 @@ def _options(debug: bool = typer.Option(False, "--debug", help="Show full traceb
 
 def register_commands() -> None:
     """Import the modules that add commands to ``app`` (kept in one place so the list reads as the CLI)."""
-    from . import bench, commands, fit, models  # noqa: F401
+    from . import bench, commands, fit, models, sim  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> None:
