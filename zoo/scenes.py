@@ -41,8 +41,6 @@ from zoo.files import atomic_write_text
 from zoo.meshes import load_mesh
 from zoo.registry import toml_parser
 
-from .parts import make_part
-
 tomllib = toml_parser()
 
 ANALYTIC = {"sphere": zoo.Sphere, "box": zoo.Box, "torus": zoo.Torus, "capsule": zoo.Capsule}
@@ -162,6 +160,8 @@ def _build_sdf(spec: dict, base_dir: Path):
 
 def _build_mesh(spec: dict, base_dir: Path):
     if "procedural" in spec:
+        from .parts import make_part  # trimesh's creation and remeshing: only for a scene that builds a part
+
         mesh, label = make_part(spec["procedural"], **spec.get("params", {})), f"procedural:{spec['procedural']}"
     elif "file" in spec:
         path = _resolve_file(spec["file"], base_dir)
