@@ -8,10 +8,10 @@
 * a triangle much larger than the SDF (a 2-triangle ground plane) reports one point for a whole
   face, too few to hold a box level.
 
-:func:`refine_near` clips every triangle larger than a quarter of the SDF's smallest extent to
+:func:`refine_near` clips every triangle larger than a quarter of the SDF's median extent to
 the SDF's bounds (grown by the margin; no point outside them can touch) and subdivides what is
-left, so every mesh looks alike to the SDF near it. :func:`reduce_contacts` then makes a manifold
-the way PhysX and MuJoCo do: coincident points merged (the deepest kept), contacts grouped into
+left to that size, so every mesh looks alike to the SDF near it. :func:`reduce_contacts` then
+makes a manifold the way PhysX and MuJoCo do: coincident points merged (the deepest kept), contacts grouped into
 patches of similar normal, and each patch kept as its deepest point plus up to three points that
 span the largest area. docs/sim-contacts.md has the measurements behind the choice.
 """
@@ -24,9 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-PATCH_COS = math.cos(math.radians(20.0))  # normals within 20 degrees of a patch's deepest contact join it
+PATCH_COS = math.cos(math.radians(20.0))  # faces within 20 degrees of a patch's deepest contact's face join it
+FLAT_COS = math.cos(math.radians(5.0))  # a patch's extra points: SDF normals within 5 degrees of its deepest's
 MAX_PER_PATCH = 4
-REFINE_CELLS = 4  # a refined triangle's edge is at most the SDF's smallest extent / REFINE_CELLS
+REFINE_CELLS = 4  # a refined triangle's edge is at most the SDF's median extent / REFINE_CELLS
 
 
 @dataclass
@@ -121,8 +122,15 @@ GRAZING_COS = 0.5  # a touching contact whose SDF normal is more than 60 degrees
 SEPARATED_COS = math.cos(math.radians(15.0))  # a separated one (distance > 0): more than 15 degrees
 
 
-def facing_faces(normals: np.ndarray, triangles: np.ndarray, depths: np.ndarray) -> np.ndarray:
-    """(K,) bool: keep the contact; its SDF normal (K, 3) is close enough to its triangle's (K, 3, 3) normal.
+def face_normals(triangles: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) -> (K, 3) unit normals; zeros for degenerate (zero-area) triangles."""
+    face = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    length = np.linalg.norm(face, axis=1, keepdims=True)
+    return face / np.where(length > 0, length, 1.0)
+
+
+def facing_faces(normals: np.ndarray, faces: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """(K,) bool: keep the contact; its SDF normal (K, 3) is close enough to its face's unit normal (K, 3).
 
     A mesh face beside the SDF, not under it (the ground just in front of a sliding box that sinks
     0.1 mm into it), is within the margin of the SDF's side: its contact's normal lies along the
@@ -134,26 +142,29 @@ def facing_faces(normals: np.ndarray, triangles: np.ndarray, depths: np.ndarray)
     within 60 degrees of their face's normal and separated ones within 15 degrees are kept, either
     side (open meshes have no reliable orientation). Degenerate faces (no normal) are kept.
     """
-    face = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    length = np.linalg.norm(face, axis=1)
-    cos = np.abs(np.einsum("ij,ij->i", normals, face)) / np.where(length > 0, length, 1.0)
-    return (cos >= np.where(depths > 0, SEPARATED_COS, GRAZING_COS)) | (length == 0)
+    cos = np.abs(np.einsum("ij,ij->i", normals, faces))
+    degenerate = ~(np.abs(faces).sum(axis=1) > 0)
+    return (cos >= np.where(depths > 0, SEPARATED_COS, GRAZING_COS)) | degenerate
 
 
 # -- reduction ------------------------------------------------------------------------------
 
 
-def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, merge_tol: float,
-                    patch_cos: float = PATCH_COS, max_per_patch: int = MAX_PER_PATCH) -> np.ndarray:
+def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, faces: np.ndarray, merge_tol: float,
+                    patch_cos: float = PATCH_COS, flat_cos: float = FLAT_COS, max_per_patch: int = MAX_PER_PATCH) -> np.ndarray:
     """Indices of the contacts to keep: a manifold of at most ``max_per_patch`` points per patch.
 
     Args:
-        points (K, 3), depths (K,), normals (K, 3): one pair's contacts.
+        points (K, 3), depths (K,), normals (K, 3): one pair's contacts (normals: the SDF's).
+        faces: (K, 3) unit normals of the contacts' mesh faces (zeros where degenerate).
         merge_tol: points closer than this are one point (the deepest is kept): the copies
             triangles around a vertex give, which an iterative solver scatters by a fraction of
             their edge.
-        patch_cos: a contact joins the patch of the deepest unassigned contact when their normals'
-            cosine is at least this.
+        patch_cos: a contact joins the patch of the deepest unassigned contact when their faces'
+            normals are this close (either side): a plane is one patch however the SDF meets it.
+        flat_cos: besides the deepest, a patch keeps only points whose SDF normal is this close to
+            the deepest's: the flat part of the contact (a box's face: four corners), not the rim
+            of a curved one (a sphere deep in a plane keeps one contact, as MuJoCo's own).
 
     Returns:
         (R,) int64 indices into the contacts, deepest patch first.
@@ -168,10 +179,14 @@ def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray,
     free = np.ones(len(candidates), dtype=bool)
     while free.any():
         seed = int(np.argmax(free))  # candidates are depth-ordered: the deepest unassigned
-        members = np.nonzero(free & (normals[candidates] @ normals[candidates[seed]] >= patch_cos))[0]
+        same_face = np.abs(faces[candidates] @ faces[candidates[seed]]) >= patch_cos
+        members = np.nonzero(free & (same_face | (np.arange(len(candidates)) == seed)))[0]
         free[members] = False
-        rows = _manifold(points[candidates[members]], normals[candidates[seed]], max_per_patch, merge_tol)
-        kept.extend(candidates[members[rows]])
+        flat = normals[candidates[members]] @ normals[candidates[seed]] >= flat_cos
+        flat[0] = True  # the seed: members are ascending, the seed is first
+        rows = np.nonzero(flat)[0]
+        chosen = _manifold(points[candidates[members[rows]]], normals[candidates[seed]], max_per_patch, merge_tol)
+        kept.extend(candidates[members[rows[chosen]]])
     return np.asarray(kept, dtype=np.int64)
 
 

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..validation import as_faces, as_points, mesh_pair
 
 JOINTS = ("free", "fixed", "hinge", "slide")
 DRIVES = ("motor", "velocity")
@@ -72,23 +73,12 @@ class Body:
     actuator_id: int = -1
 
 
-def mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (V, 3) float64, faces (F, 3) int64) from a trimesh or a (V, F) pair."""
-    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        vertices, faces = mesh.vertices, mesh.faces
-    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
-        vertices, faces = mesh
-    else:
-        raise InputError(f"a body's mesh must be a trimesh.Trimesh or a (vertices, faces) pair, got {type(mesh).__name__}")
-    vertices = np.asarray(torch.as_tensor(vertices).detach().cpu(), dtype=np.float64)
-    faces = np.asarray(torch.as_tensor(faces).detach().cpu(), dtype=np.int64)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise InputError(f"a mesh needs vertices (V, 3) and faces (F, 3); got {vertices.shape} and {faces.shape}")
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise InputError(f"mesh faces index vertices 0..{len(vertices) - 1}; got indices {faces.min()}..{faces.max()}")
-    if not np.isfinite(vertices).all():
-        raise InputError("mesh vertices hold NaN or Inf; repair the mesh")
-    return vertices, faces
+def mesh_arrays(mesh, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) float64, faces (F, 3) int64) from a trimesh or a (V, F) pair, validated."""
+    vertices, faces = mesh_pair(mesh, name)
+    vertices = as_points(torch.as_tensor(np.asarray(vertices, dtype=np.float64)), f"{name} vertices", allow_empty=True)
+    faces = as_faces(faces, int(vertices.shape[0]), f"{name} faces")
+    return vertices.numpy(), faces.numpy()
 
 
 def sdf_mass_properties(sdf, mass: float | None = None, density: float | None = None,

@@ -26,7 +26,16 @@ import torch
 import zoo
 
 from ..errors import InputError
-from .contacts import REFINE_CELLS, add_contacts, as_numpy, contact_rows, facing_faces, reduce_contacts, refine_near
+from .contacts import (
+    REFINE_CELLS,
+    add_contacts,
+    as_numpy,
+    contact_rows,
+    face_normals,
+    facing_faces,
+    reduce_contacts,
+    refine_near,
+)
 from .model import (
     JOINTS,
     Body,
@@ -41,7 +50,8 @@ INTEGRATORS = {"implicitfast": "implicitfast", "euler": "Euler"}
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
 # copies of a vertex's contact by up to a tenth of the edge: 3 mm on 3 cm triangles)
 MERGE_FRACTION = 0.05
-SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
+SPECULATIVE_FACTOR = 1.5
+TUNNEL_FRACTION = 0.25  # of the thinnest SDF body's smallest extent  # a fast pair's margin covers this much more than one step's closing distance
 
 
 @dataclass
@@ -148,6 +158,8 @@ class Simulation:
         self._pairs = [(a, b) for a in self.bodies.values() if a.sdf is not None
                        for b in self.bodies.values() if b.mesh is not None and b is not a]
         self._sdf_boxes = {b.name: _bounds(b.sdf) for b in self.bodies.values() if b.sdf is not None}
+        # a body pushed deeper than this into a mesh is reported: past its middle a thin mesh's contacts push it through
+        self._tunnel_depth = TUNNEL_FRACTION * min((float((hi - lo).min()) for lo, hi in self._sdf_boxes.values()), default=math.inf)
         self._mesh_boxes = {b.name: (b.mesh[0].min(axis=0), b.mesh[0].max(axis=0)) for b in self.bodies.values() if b.mesh is not None}
         mujoco.mj_step1(self.model, self.data)  # kinematics of the initial state, for pose()
         self._kinematics_fresh = True
@@ -197,6 +209,10 @@ class Simulation:
         ))
         if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
             self.log[-1].warnings.append("non-finite state")
+        if -depth > self._tunnel_depth:
+            self.log[-1].warnings.append(
+                f"deep penetration {-depth * 1e3:.3g} mm, over a quarter of the thinnest SDF body: it may pass through "
+                "a thin mesh (use a smaller dt or a larger solref time constant)")
 
     def _detect(self):
         """Contacts of every overlapping pair: (rows per pair, raw count, largest margin used, any speculative, Contacts)."""
@@ -228,7 +244,7 @@ class Simulation:
         # the mesh in the SDF's frame, cut to the SDF's box and with large faces refined there
         sdf_from_mesh = np.linalg.inv(t_sdf) @ t_mesh
         local = vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
-        max_edge = float((hi - lo).min()) / REFINE_CELLS if self.refine else math.inf
+        max_edge = float(np.median(hi - lo)) / REFINE_CELLS if self.refine else math.inf  # a thin plate: its side, not its thickness
         local, faces, origin = refine_near(local, faces, lo - margin, hi + margin, max_edge)
         if len(faces) == 0:
             return None
@@ -236,13 +252,14 @@ class Simulation:
         mesh = (torch.as_tensor(local[used_v], dtype=torch.float32), torch.as_tensor(inverse.reshape(-1, 3)))
         world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
         contacts = zoo.collide(sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin, method=self._method_for(sdf_body.sdf))
-        facing = _facing(contacts, local, faces, t_sdf)
-        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the body's own faces
         points, depths, normals = as_numpy(contacts)
-        keep = np.nonzero(facing)[0]
+        rotation = t_sdf[:3, :3]
+        faces_world = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ rotation.T  # (K, 3)
+        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the body's own faces
+        keep = np.nonzero(facing_faces(normals, faces_world, depths))[0]
         if self.reduce and len(keep):
-            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep],
-                                        merge_tol=MERGE_FRACTION * float((hi - lo).min()))]
+            merge = MERGE_FRACTION * float((hi - lo).min())
+            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
         return contacts, keep
 
     def _method_for(self, sdf) -> str:
@@ -325,13 +342,6 @@ class Simulation:
     def warnings(self) -> list[str]:
         """Every warning the log recorded, with the time of its step."""
         return [f"t={r.time:.4f}s: {w}" for r in self.log for w in r.warnings]
-
-
-def _facing(contacts, local: np.ndarray, faces: np.ndarray, t_sdf: np.ndarray) -> np.ndarray:
-    """(K,) bool: the contact's face is not grazed by the SDF's normal (see contacts.facing_faces)."""
-    _, depths, normals = as_numpy(contacts)
-    tri = local[faces[np.asarray(contacts.triangles)]]  # (K, 3, 3) in the SDF's frame
-    return facing_faces(normals @ t_sdf[:3, :3], tri, depths)
 
 
 def _bounds(sdf) -> tuple[np.ndarray, np.ndarray]:
