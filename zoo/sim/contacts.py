@@ -215,10 +215,19 @@ def _manifold(points: np.ndarray, normal: np.ndarray, n: int, spread: float) -> 
 
 
 def _area_gain(flat: np.ndarray, polygon: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """(P,) the largest triangle area each point makes with an edge of the kept polygon (closed)."""
-    a, b = polygon, np.roll(polygon, -1, axis=0)
-    cross = np.cross((b - a)[None], flat[:, None] - a[None])  # (P, E, 3)
-    return np.abs(cross @ normal).max(axis=1) / 2
+    """(P,) the area each point adds to the kept convex polygon (K, 3), all projected on the plane of ``normal``.
+
+    The polygon's corners are put in counter-clockwise order about ``normal``; a point outside adds
+    the triangles it makes with the edges it sees (those it lies outside of), a point inside adds nothing.
+    """
+    t1 = tangent_frames(normal[None])[0, 3:6]
+    t2 = np.cross(normal, t1)
+    centre = polygon.mean(axis=0)
+    angle = np.arctan2((polygon - centre) @ t2, (polygon - centre) @ t1)
+    a = polygon[np.argsort(angle)]
+    b = np.roll(a, -1, axis=0)
+    signed = np.cross((b - a)[None], flat[:, None] - a[None]) @ normal  # (P, K): > 0 inside each edge
+    return np.clip(-signed, 0.0, None).sum(axis=1) / 2
 
 
 # -- MuJoCo rows ----------------------------------------------------------------------------

@@ -1,0 +1,188 @@
+"""zoo.sim: contacts against MuJoCo's native ones, the contact reduction, stiff and extreme cases, scenes, `zoo simulate`."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mujoco = pytest.importorskip("mujoco")
+
+import zoo  # noqa: E402
+import zoo.sim  # noqa: E402
+from benches import sim_check, stress_sim  # noqa: E402
+from zoo.errors import InputError  # noqa: E402
+from zoo.sim.contacts import face_normals, reduce_contacts, refine_near  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_import_zoo_does_not_load_mujoco():
+    code = "import sys, zoo; print('mujoco' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+# -- against native MuJoCo (the same comparisons as benches/sim_check.py) ---------------------
+
+
+@pytest.mark.parametrize("name, shape, ground, xy", [
+    ("sphere over a vertex of a fine plane", "sphere", "fine", (0.0, 0.0)),
+    ("sphere on a 2-triangle plane", "sphere", "coarse", (0.3, 0.1)),
+    ("box on a 2-triangle plane", "box", "coarse", (0.3, 0.1)),
+])
+def test_resting_matches_native(name, shape, ground, xy):
+    mesh = sim_check.grid_plane(64, 1.0) if ground == "fine" else sim_check.two_triangle_plane()
+    record = sim_check.rest_case(name, shape, mesh, xy=xy)
+    assert abs(record["penetration_error"]) <= 0.25, record
+    assert abs(record["normal_force_error"]) <= 0.01, record
+    assert record["ok"], record
+
+
+def test_sliding_box_matches_native():
+    record = sim_check.slide_case("flat box sliding", sim_check.two_triangle_plane())
+    assert abs(record["slide_error"]) <= 0.10, record
+
+
+def test_raw_contacts_on_a_vertex_are_stiffer_than_native():
+    """Why contacts are reduced: the copies of a vertex's contact make the ground harder without it."""
+    native = sim_check.resting(sim_check.native_run("sphere", (0.0, 0.0), sim_check.RADIUS + 5e-4, seconds=0.4), sim_check.RADIUS)
+    run = sim_check.zoo_run("sphere", sim_check.grid_plane(32, 1.0), (0.0, 0.0), sim_check.RADIUS + 5e-4, seconds=0.4, reduce=False)
+    raw = sim_check.resting(run, sim_check.RADIUS)
+    assert raw["penetration"] < 0.5 * native["penetration"]
+
+
+# -- reduction and refinement -----------------------------------------------------------------
+
+
+def test_reduction_merges_copies_of_one_point():
+    points = np.zeros((6, 3)) + np.random.default_rng(0).normal(scale=1e-4, size=(6, 3))
+    normals = np.tile([0.0, 0.0, -1.0], (6, 1))
+    faces = np.tile([0.0, 0.0, 1.0], (6, 1))
+    keep = reduce_contacts(points, np.full(6, -1e-4), normals, faces, merge_tol=1e-3)
+    assert len(keep) == 1
+
+
+def test_reduction_keeps_four_corners_of_a_flat_patch():
+    g = np.linspace(-0.05, 0.05, 11)
+    x, y = np.meshgrid(g, g)
+    points = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    normals = np.tile([0.0, 0.0, -1.0], (len(points), 1))
+    keep = reduce_contacts(points, np.full(len(points), -1e-4), normals, -normals, merge_tol=5e-3)
+    assert len(keep) == 4
+    assert np.allclose(np.abs(points[keep, :2]), 0.05)
+
+
+def test_reduction_keeps_one_contact_of_a_sphere_deep_in_a_plane():
+    """The rim of a curved contact has slanted normals: it adds no points (MuJoCo's sphere-plane has one)."""
+    centre = np.array([0.0, 0.0, 0.02])
+    g = np.linspace(-0.04, 0.04, 9)
+    x, y = np.meshgrid(g, g)
+    points = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    offset = points - centre
+    depths = np.linalg.norm(offset, axis=1) - 0.05
+    normals = offset / np.linalg.norm(offset, axis=1, keepdims=True)
+    keep = reduce_contacts(points, depths, normals, np.tile([0.0, 0.0, 1.0], (len(points), 1)), merge_tol=2.5e-3)
+    assert len(keep) == 1 and np.allclose(points[keep[0]], 0)
+
+
+def test_refine_clips_large_triangles_to_the_box():
+    v, f = sim_check.two_triangle_plane()
+    lo, hi = np.array([0.2, 0.0, -0.1]), np.array([0.4, 0.2, 0.1])
+    rv, rf, origin = refine_near(v, f, lo, hi, max_edge=0.05)
+    tri = rv[rf]
+    assert len(rf) > 2 and set(origin.tolist()) <= {0, 1}
+    assert (tri >= lo - 1e-9).all() and (tri <= hi + 1e-9).all()
+    assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max() <= 0.05 + 1e-9
+    assert np.isclose(np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2]).sum() / 2, 0.2 * 0.2)
+    assert np.allclose(np.abs(face_normals(tri)[:, 2]), 1)
+
+
+# -- stiff and extreme cases (as `zoo stress --sim`) -------------------------------------------
+
+
+@pytest.mark.parametrize("prefix", ["stiff", "impact crossing", "impact far", "deep", "mass ratio 1:1000"])
+def test_stress_case(prefix):
+    name, fn = next((n, f) for n, f in stress_sim.CASES if n.startswith(prefix))
+    expected, observed, ok = fn({})
+    assert ok, (name, expected, observed)
+    assert observed["finite"]
+
+
+# -- the API ----------------------------------------------------------------------------------
+
+
+def test_hinge_with_a_velocity_drive_turns_at_its_target():
+    sim = zoo.sim.Simulation(dt=0.002)
+    sim.add_body("wheel", sdf=zoo.Sphere(radius=0.05), mass=1.0, joint="hinge", axis=(0, 0, 1),
+                 drive={"type": "velocity", "target": 2.0, "kv": 50.0})
+    sim.run(0.5)
+    assert np.isclose(sim.velocity("wheel")[5], 2.0, rtol=0.02)
+    assert np.allclose(sim.pose("wheel")[:3, 3], 0, atol=1e-9)
+
+
+def test_slide_with_a_motor_and_mass_from_the_sdf():
+    sim = zoo.sim.Simulation(dt=0.002, gravity=(0, 0, 0))
+    body = sim.add_body("block", sdf=zoo.Box(half_extents=(0.05, 0.05, 0.05)), density=1000.0, joint="slide", axis=(1, 0, 0),
+                        drive={"type": "motor", "ctrl": 1.0})
+    assert np.isclose(body.mass.mass, 1.0, rtol=0.01)  # a 10 cm cube of water
+    sim.run(0.2)
+    assert np.isclose(sim.velocity("block")[0], 1.0 / body.mass.mass * 0.2, rtol=0.02)
+
+
+def test_bad_arguments_raise_typed_errors():
+    with pytest.raises(InputError, match="RK4"):
+        zoo.sim.Simulation(integrator="rk4")
+    sim = zoo.sim.Simulation()
+    with pytest.raises(InputError, match="joint"):
+        sim.add_body("a", sdf=zoo.Sphere(radius=0.1), joint="ball")
+    with pytest.raises(InputError, match="sdf, a mesh"):
+        sim.add_body("b")
+    with pytest.raises(InputError, match="no body"):
+        sim.pose("missing")
+
+
+def test_log_records_every_step():
+    sim = zoo.sim.Simulation(dt=0.001, method="fw")
+    sim.add_body("ball", sdf=zoo.Sphere(radius=0.05), mass=1.0, pose=np.array(
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.0502], [0, 0, 0, 1]], dtype=float))
+    sim.add_body("ground", mesh=sim_check.two_triangle_plane(), joint="fixed")
+    sim.step(20)
+    assert len(sim.log) == 20 and sim.log[-1].contacts >= 1
+    assert isinstance(sim.contacts, zoo.Contacts) and len(sim.contacts) >= 1
+    assert all(r.collide_s >= 0 and r.step_s >= r.collide_s for r in sim.log)
+
+
+# -- scenes and `zoo simulate` ------------------------------------------------------------------
+
+
+def test_zoo_simulate_writes_trajectory_stats_and_plot(tmp_path):
+    from typer.testing import CliRunner
+
+    from cli import sim as _  # noqa: F401  (registers the command until cli.main does)
+    from cli.main import app, register_commands
+
+    register_commands()
+    result = CliRunner().invoke(app, ["simulate", str(ROOT / "scenes" / "ring-rack.toml"), "--seconds", "0.02", "--dt", "0.002",
+                                      "--out", str(tmp_path), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    import h5py
+
+    with h5py.File(tmp_path / "ring-rack.h5") as f:
+        assert f["bodies/sdf/pose"].shape == (10, 4, 4)
+        assert f.attrs["method"] == "fw" and len(f.attrs["scene_sha256"]) == 64 and f.attrs["dt"] == 0.002
+    stats = json.loads((tmp_path / "ring-rack.json").read_text())
+    assert len(stats["steps"]) == 10 and stats["summary"]["finite"]
+    assert (tmp_path / "ring-rack.png").stat().st_size > 0
+
+
+def test_demo_scene_loads_on_bundled_data():
+    sim = zoo.sim.load_scene(ROOT / "scenes" / "sim-demo-mug-rack.toml")
+    assert set(sim.bodies) == {"mug", "rack"} and sim.bodies["mug"].mass.mass == 0.3
+    assert "mugs@" in sim.labels["mug"]
+    sim.step(2)
+    assert np.isfinite(sim.pose("mug")).all()
