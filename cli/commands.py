@@ -43,11 +43,19 @@ def stress(
     out: str = typer.Option("out/stress.json", help="Where to write the JSON report."),
     model: str = typer.Option(None, help="Also stress a packaged model's NeuralSDF and detector (NAME[@VERSION])."),
     shape: str = typer.Option(None, help="The model's shape to use (default: its first)."),
+    sim: bool = typer.Option(False, "--sim", help="Stress zoo.sim instead (MuJoCo contact simulation; needs sdfzoo[sim]): "
+                             "stiff contacts, dt 0.25-4 ms, mass ratios, impacts, deep starts, 10 s at rest, 1,000+ contacts."),
 ):
     """Stiff and extreme cases and malformed input; each case says what was expected and what happened."""
-    from benches.stress import run_stress
+    if sim:
+        from benches.stress_sim import run_sim_stress
 
-    report = run_stress(out, model=model, shape=shape)
+        out = "out/stress-sim.json" if out == "out/stress.json" else out
+        report = run_sim_stress(out)
+    else:
+        from benches.stress import run_stress
+
+        report = run_stress(out, model=model, shape=shape)
     for r in report["cases"]:
         typer.echo(f"{'ok  ' if r['ok'] else 'FAIL'} {r['case']:<40} {r['seconds']:.2f}s")
     typer.echo(f"{report['passed']} passed, {report['failed']} failed; wrote {out}")

@@ -47,6 +47,7 @@ from ..scenes import _build_mesh, _build_sdf, pose_matrix
 from .simulation import Simulation
 
 SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "sdf_mass", "drop", "reduce", "refine"}
+SCENE_ONLY = ("seconds", "drop", "sdf_mass")  # [sim] keys that are not Simulation's arguments
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
 
 
@@ -63,13 +64,15 @@ def read_scene(path: str | os.PathLike) -> dict:
 
 
 def load_scene(path: str | os.PathLike, **overrides) -> Simulation:
-    """A :class:`Simulation` from a scene file; ``overrides`` (dt, method, margin, ...) replace the file's values."""
+    """A :class:`Simulation` from a scene file; ``overrides`` replace the file's values: Simulation's arguments
+    (dt, method, margin, friction, ...) and [sim]'s seconds, drop, sdf_mass; None keeps the file's."""
     return scene_simulation(read_scene(path), base_dir=Path(path).parent, **overrides)
 
 
 def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Simulation:
     """A :class:`Simulation` from a scene's table (see the module docstring)."""
     sim_spec = dict(spec.get("sim", {}))
+    sim_spec.update({k: overrides.pop(k) for k in SCENE_ONLY if overrides.get(k) is not None})
     unknown = set(sim_spec) - SIM_KEYS
     if unknown:
         raise InputError(f"unknown [sim] keys {sorted(unknown)}; known: {sorted(SIM_KEYS)}")
