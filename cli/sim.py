@@ -14,7 +14,8 @@ from .main import app
 
 @app.command()
 def simulate(
-    scene: Path = typer.Argument(..., help="A simulation scene (bodies, [sim]) or a collision scene (its SDF dropped on its mesh)."),
+    scene: str = typer.Argument(..., help="A simulation scene (bodies, [sim]) or a collision scene (its SDF dropped on its mesh): "
+                                "a path or a bundled scene's name (sim-demo-mug-rack)."),
     seconds: float = typer.Option(None, "--seconds", help="Simulated time (default: the scene's [sim] seconds)."),
     dt: float = typer.Option(None, "--dt", help="Time step, s (default: the scene's)."),
     method: str = typer.Option(None, "--method", help="zoo.collide's narrow phase: fw, pgd, voxel-fw, amortized (default: the scene's)."),
@@ -40,7 +41,7 @@ def simulate(
             sim.step()
             recorder(sim)
             bar.update(task, advance=1)
-    paths = recorder.write(out, provenance(sim, scene))
+    paths = recorder.write(out, provenance(sim, sim.scene_path))
     summary = recorder.summary()
     console.print(
         f"{summary['steps']} steps, {summary['simulated_s']:.3f} s simulated; max penetration "

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import DataError, InputError
 from ..registry import toml_parser
-from ..scenes import _build_mesh, _build_sdf, pose_matrix
+from ..scenes import _build_mesh, _build_sdf, pose_matrix, resolve_scene
 from .simulation import Simulation
 
 SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "sdf_mass", "drop", "reduce", "refine"}
@@ -51,22 +51,24 @@ SCENE_ONLY = ("seconds", "drop", "sdf_mass")  # [sim] keys that are not Simulati
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
 
 
-def read_scene(path: str | os.PathLike) -> dict:
-    """The scene file's table (TOML), with a typed error when it is missing or malformed."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"scene file {path} does not exist")
+def read_scene(path: str | os.PathLike) -> tuple[dict, Path]:
+    """(the scene's table, its file): a path or a bundled scene's name (``zoo.scenes.resolve_scene``), TOML."""
+    path = resolve_scene(path)
     tomllib = toml_parser()
     try:
-        return tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text()), path
     except tomllib.TOMLDecodeError as exc:
         raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
 
 
 def load_scene(path: str | os.PathLike, **overrides) -> Simulation:
-    """A :class:`Simulation` from a scene file; ``overrides`` replace the file's values: Simulation's arguments
-    (dt, method, margin, friction, ...) and [sim]'s seconds, drop, sdf_mass; None keeps the file's."""
-    return scene_simulation(read_scene(path), base_dir=Path(path).parent, **overrides)
+    """A :class:`Simulation` from a scene file (a path or a bundled scene's name); ``overrides`` replace the
+    file's values: Simulation's arguments (dt, method, margin, friction, ...) and [sim]'s seconds, drop,
+    sdf_mass; None keeps the file's. ``sim.scene_path`` is the file read."""
+    spec, resolved = read_scene(path)
+    sim = scene_simulation(spec, base_dir=resolved.parent, **overrides)
+    sim.scene_path = resolved
+    return sim
 
 
 def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Simulation:
