@@ -96,11 +96,11 @@ def native_run(shape: str, xy=(0.0, 0.0), z0: float = 0.0, velocity=(0.0, 0.0, 0
 
 
 def zoo_run(shape: str, ground, xy=(0.0, 0.0), z0: float = 0.0, velocity=(0.0, 0.0, 0.0), seconds: float = SETTLE_S,
-            method: str = "fw", reduce: bool = True, half=(HALF, HALF, HALF)) -> dict:
+            method: str = "fw", reduce: bool = True, half=(HALF, HALF, HALF), refine: bool = True) -> dict:
     import zoo
     import zoo.sim
 
-    sim = zoo.sim.Simulation(dt=DT, method=method, friction=1.0, reduce=reduce)
+    sim = zoo.sim.Simulation(dt=DT, method=method, friction=1.0, reduce=reduce, refine=refine)
     sdf = zoo.Sphere(radius=RADIUS) if shape == "sphere" else zoo.Box(half_extents=half)
     pose = np.eye(4)
     pose[:3, 3] = (xy[0], xy[1], z0)
@@ -170,6 +170,26 @@ def run_check() -> dict:
             "platform": platform.platform(), "cases": cases, "ok": all(c["ok"] for c in cases)}
 
 
+def tessellation_table(cells=(1, 2, 4, 8, 16, 64), seconds: float = SETTLE_S) -> list[dict]:
+    """Resting penetration of a sphere over the centre of a 1 m plane of 2 * cells^2 triangles (a vertex for even
+    cells) and of a box there: native MuJoCo, zoo.sim's reduced contacts, every contact zoo.collide gives on the
+    refined mesh (raw), and on the mesh as given (unrefined raw: no clipping of large triangles either)."""
+    rows = []
+    for shape in ("sphere", "box"):
+        half = RADIUS if shape == "sphere" else HALF
+        z0 = half + 5e-4
+        native = resting(native_run(shape, (0.0, 0.0), z0, seconds=seconds), half)["penetration"]
+        for n in cells:
+            plane = grid_plane(n, 1.0)
+            row = {"shape": shape, "triangles": 2 * n * n, "native_mm": 1e3 * native}
+            for label, reduce, refine in (("reduced", True, True), ("raw", False, True), ("unrefined_raw", False, False)):
+                run = zoo_run(shape, plane, (0.0, 0.0), z0, seconds=seconds, reduce=reduce, refine=refine)
+                row[f"{label}_mm"] = 1e3 * resting(run, half)["penetration"]
+                row[f"{label}_contacts"] = int(run["contacts"])
+            rows.append(row)
+    return rows
+
+
 def table(report: dict) -> str:
     lines = ["| case | native | zoo.sim | error | ok |", "|---|---|---|---|---|"]
     for c in report["cases"]:
@@ -184,8 +204,17 @@ def table(report: dict) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="out/sim-check.json")
+    parser.add_argument("--tessellation", action="store_true", help="also the resting penetration on planes of 2 to 8,192 "
+                        "triangles, native vs reduced vs raw contacts (docs/sim-contacts.md)")
     args = parser.parse_args(argv)
     report = run_check()
+    if args.tessellation:
+        report["tessellation"] = tessellation_table()
+        print("| shape | triangles | native (mm) | reduced (mm, contacts) | raw (mm, contacts) | unrefined raw (mm, contacts) |\n"
+              "|---|---|---|---|---|---|")
+        for r in report["tessellation"]:
+            print(f"| {r['shape']} | {r['triangles']} | {r['native_mm']:.3f} | {r['reduced_mm']:.3f} ({r['reduced_contacts']}) | "
+                  f"{r['raw_mm']:.3f} ({r['raw_contacts']}) | {r['unrefined_raw_mm']:.3f} ({r['unrefined_raw_contacts']}) |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1))

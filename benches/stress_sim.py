@@ -22,7 +22,7 @@ import numpy as np
 
 from zoo.files import atomic_write_text
 
-from .sim_check import G, HALF, MASS, RADIUS, box_inertia, grid_plane, native_run, resting, sphere_inertia, two_triangle_plane
+from .sim_check import HALF, MASS, RADIUS, G, box_inertia, grid_plane, native_run, sphere_inertia, two_triangle_plane
 from .stress import run_case
 
 CASES = []
@@ -66,6 +66,13 @@ def _run(sim, seconds: float, body: str) -> dict:
         energy.append(sim.energy())
     finite = bool(np.isfinite(z).all() and np.isfinite(speed).all())
     return {"z": np.array(z), "speed": np.array(speed), "energy": np.array(energy), "finite": finite}
+
+
+def _ball_drop(height: float, speed: float, seconds: float):
+    """(sim, run) of the ball thrown down at ``speed`` from ``height`` above the 2-triangle ground."""
+    sim = _simulation(0.002)
+    _sphere_on_ground(sim, RADIUS + height, velocity=(0, 0, -speed, 0, 0, 0))
+    return sim, _run(sim, seconds, "ball")
 
 
 def _common(sim, run: dict) -> dict:
@@ -167,9 +174,7 @@ def _heavy_on_light(ctx):
 
 @case("impact crossing the margin in one step (5 m/s, dt 2 ms: 10 mm per step, margin 1 mm)")
 def _impact(ctx):
-    sim = _simulation(0.002)
-    _sphere_on_ground(sim, RADIUS + 0.02, velocity=(0, 0, -5.0, 0, 0, 0))
-    run = _run(sim, 0.3, "ball")
+    sim, run = _ball_drop(0.02, 5.0, 0.3)
     widened = sum(r.speculative for r in sim.log)
     observed = {**_common(sim, run), "steps_with_widened_margin": widened, "lowest_centre_mm": 1e3 * run["z"].min(),
                 "final_height_mm": 1e3 * run["z"][-1]}
@@ -180,9 +185,7 @@ def _impact(ctx):
 
 @case("impact far too fast to stop (50 m/s, dt 2 ms: 10 cm per step)")
 def _impact_extreme(ctx):
-    sim = _simulation(0.002)
-    _sphere_on_ground(sim, RADIUS + 0.2, velocity=(0, 0, -50.0, 0, 0, 0))
-    run = _run(sim, 0.1, "ball")
+    sim, run = _ball_drop(0.2, 50.0, 0.1)
     passed = bool(run["z"].min() < 0)
     observed = {**_common(sim, run), "passed_through": passed, "lowest_centre_mm": 1e3 * run["z"].min()}
     ok = run["finite"] and (not passed or any("deep penetration" in w for w in sim.warnings))

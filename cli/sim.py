@@ -58,5 +58,5 @@ def simulate(
             console.print(f"  {w}")
     if not summary["finite"]:
         console.print("[red]the state became non-finite (NaN/Inf)[/red]")
-    for kind, path in paths.items():
+    for path in paths.values():
         console.print(f"wrote {path}")

@@ -3,12 +3,10 @@ scenes/mug-rack.toml, on the NDF rack, stays on the peg. Skips without the devel
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-
 from real_meshes import SKIP_REASON, zoo_data
 
 pytest.importorskip("mujoco")

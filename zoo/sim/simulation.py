@@ -85,6 +85,13 @@ class Simulation:
         reduce: reduce contacts to a manifold per patch (False: every contact zoo.collide gives, for
             comparison).
         refine: clip and subdivide triangles larger than the SDF near it (False: the mesh as given).
+
+    Attributes:
+        contacts: ``zoo.Contacts`` of the last step that went into MuJoCo's solver (after the
+            reduction), world frame, all pairs concatenated.
+        log: one :class:`StepRecord` per step.
+        warnings: every warning of the log (MuJoCo's ``d.warning``, a full contact buffer, deep
+            penetration, a non-finite state), with its time.
     """
 
     def __init__(self, dt: float = 0.002, gravity=(0.0, 0.0, -9.81), method: str = "amortized", margin: float = 1e-3,
@@ -154,6 +161,8 @@ class Simulation:
         import mujoco
 
         self.model, self.data = build_model(list(self.bodies.values()), self.dt, self.gravity, self.integrator)
+        if self.model.nv == 0:
+            raise InputError("nothing moves: every body is fixed; give one a free, hinge or slide joint")
         self._warnings_seen = np.array([w.number for w in self.data.warning])
         self._pairs = [(a, b) for a in self.bodies.values() if a.sdf is not None
                        for b in self.bodies.values() if b.mesh is not None and b is not a]
@@ -162,7 +171,6 @@ class Simulation:
         self._tunnel_depth = TUNNEL_FRACTION * min((float((hi - lo).min()) for lo, hi in self._sdf_boxes.values()), default=math.inf)
         self._mesh_boxes = {b.name: (b.mesh[0].min(axis=0), b.mesh[0].max(axis=0)) for b in self.bodies.values() if b.mesh is not None}
         mujoco.mj_step1(self.model, self.data)  # kinematics of the initial state, for pose()
-        self._kinematics_fresh = True
 
     # -- stepping -----------------------------------------------------------------------
 
@@ -185,9 +193,7 @@ class Simulation:
 
         m, d = self.model, self.data
         t0 = time.perf_counter()
-        if not self._kinematics_fresh:
-            mujoco.mj_step1(m, d)
-        self._kinematics_fresh = False
+        mujoco.mj_step1(m, d)
         t1 = time.perf_counter()
         rows, raw, used_margin, speculative, collected = self._detect()
         t2 = time.perf_counter()
@@ -197,6 +203,10 @@ class Simulation:
         mujoco.mj_projectConstraint(m, d)
         mujoco.mj_referenceConstraint(m, d)
         mujoco.mj_step2(m, d)
+        # poses and velocities of the new state for pose()/velocity() (the next mj_step1 recomputes them)
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        mujoco.mj_comVel(m, d)
         warnings = self._new_warnings()
         if added < sum(len(r) for r in rows):
             warnings.append(f"contact buffer full: {sum(len(r) for r in rows) - added} contacts dropped")
