@@ -6,7 +6,6 @@ import typer
 
 from .main import app
 
-
 # The numbers a reader compares first, in this order, with their labels in `zoo list`; `zoo info` shows every metric.
 HEADLINE_METRICS = {
     "near_p50": "near p50",  # SDF error near the surface, fraction of the shape's size

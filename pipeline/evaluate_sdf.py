@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
@@ -200,7 +201,7 @@ def main(argv: list[str] | None = None) -> None:
         stems = [s for s in stems.split(",") if s]
         if stems:
             config = EvalConfig(n_near=10_000, n_uniform=10_000, chamfer_resolution=48)
-            report[split] = run(model, args.category, None, stems, config=config, log=lambda s: print(split, s, flush=True))
+            report[split] = run(model, args.category, None, stems, config=config, log=partial(print, split, flush=True))
             print(split, json.dumps(report[split]["summary"]), flush=True)
     atomic_write_text(args.out, json.dumps(report, indent=1))
 

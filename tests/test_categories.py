@@ -7,11 +7,10 @@ import shutil
 from pathlib import Path
 
 import pytest
+from real_meshes import DATA, needs_data
 
 from pipeline.categories import list_categories, load_category, resolve_data_dir, verify_meshes
-from real_meshes import DATA, needs_data
 from zoo.errors import DataError, InputError
-
 
 SPLIT_COUNTS = {  # (train, test, scene), from ../shared/meshes/SOURCES.md
     "mugs": (54, 17, 0),

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from tiny_packages import flip_byte
 
 import zoo
-from test_registry import flip_byte, released, zoo_home  # noqa: F401  (fixtures)
 from zoo.errors import ChecksumError, ModelNotFoundError
 from zoo.files import sha256_file
 from zoo.hub import hub_cache_dir, parse_hub_spec

@@ -9,8 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from tiny_packages import MUG_SHAPES, make_fit_output
 
-from test_registry import MUG_SHAPES, make_fit_output, released, zoo_home  # noqa: F401  (fixtures)
 from zoo import registry
 from zoo.model import Model
 

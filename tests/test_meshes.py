@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-
 from real_meshes import DATA, needs_data
+
 from zoo.errors import DataError, InputError
 from zoo.meshes import Similarity, exterior_faces, load_mesh, normalise, sample_sdf, signed_distance, up_rotation
 

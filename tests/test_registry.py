@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from tiny_packages import BOTTLE_SHAPES, MUG_SHAPES, flip_byte, make_fit_output  # noqa: F401
 
 import zoo
 from zoo import registry
@@ -21,67 +22,11 @@ from zoo.errors import ChecksumError, DataError, InputError, ModelNotFoundError
 from zoo.files import CHECKSUMS, sha256_file, write_checksums
 from zoo.model import Model
 
-MUG_SHAPES = ["hoi4d_mug_0001", "shapenet_mug_128ecbc1", "edf_mug1"]
-BOTTLE_SHAPES = ["edf_bottle0", "bulletarm_bottle1"]
-
-
-# --------------------------------------------------------------------------- fixtures (shared with test_hub.py)
-
-
-def make_fit_output(directory: Path, category: str, shapes: list[str], seed: int = 0) -> Path:
-    """A tiny `zoo fit-category` output written by Model.save: random weights, a cache file beside them."""
-    from zoo.detector import AmortizedDetector
-    from zoo.meshes import Similarity
-    from zoo.neural import NeuralSDF, NeuralSDFConfig
-
-    g = torch.Generator().manual_seed(seed)
-    sdf = NeuralSDF(NeuralSDFConfig(n_codes=4, code_dim=8, hidden=(8,)), len(shapes), generator=g)
-    detector = AmortizedDetector(feature_dim=8, hidden=8, weight_hidden=4)
-    model = Model(category, "0.0.0", sdf, shapes, {s: Similarity.identity() for s in shapes}, detector=detector)
-    directory.mkdir(parents=True, exist_ok=True)
-    (directory / "sdf_samples.h5").write_bytes(b"a stage cache that must not be packaged")
-    model.save(
-        directory,
-        metrics={"sdf_abs_error_p50": 0.0012, "command": f"zoo eval {category}"},
-        training_data={"category_manifest": f"manifests/categories/{category}.toml", "inputs": {s: "0" * 64 for s in shapes}},
-        category=category,
-        license="",
-    )
-    return directory
-
 
 def stored_scalars(path: Path) -> int:
     from safetensors.torch import load_file
 
     return sum(t.numel() for t in load_file(str(path)).values())
-
-
-@pytest.fixture
-def zoo_home(tmp_path, monkeypatch):
-    """Empty manifests and pretrained folders for this test only."""
-    monkeypatch.setenv(registry.MANIFESTS_ENV, str(tmp_path / "manifests"))
-    monkeypatch.setenv(registry.PRETRAINED_ENV, str(tmp_path / "pretrained"))
-    (tmp_path / "manifests" / "models").mkdir(parents=True)
-    return tmp_path
-
-
-@pytest.fixture
-def released(zoo_home):
-    """mugs 1.9.0 and 1.10.0 (lexically smaller, semantically newer) and bottles 1.0.0."""
-    from pipeline.package import package_model
-
-    mugs = make_fit_output(zoo_home / "fits" / "mugs", "mugs", MUG_SHAPES)
-    bottles = make_fit_output(zoo_home / "fits" / "bottles", "bottles", BOTTLE_SHAPES, seed=1)
-    package_model(mugs, "1.9.0", date="2026-01-01")
-    package_model(mugs, "1.10.0", date="2026-02-01")
-    package_model(bottles, "1.0.0", date="2026-02-01")
-    return zoo_home
-
-
-def flip_byte(path: Path, offset: int = -1) -> None:
-    data = bytearray(path.read_bytes())
-    data[offset] ^= 0xFF
-    path.write_bytes(bytes(data))
 
 
 # --------------------------------------------------------------------------- versions

@@ -324,7 +324,7 @@ class NeuralShape(SDFBase):
         return s, r, t
 
     @property
-    def normalised(self) -> "NeuralShape":
+    def normalised(self) -> NeuralShape:
         """The same shape answering in the normalised frame (unit cube, scale 1); built once, and
         sharing this shape's cache of converted networks."""
         if getattr(self, "_normalised_shape", None) is None:
@@ -472,7 +472,7 @@ class NeuralShape(SDFBase):
         known = Known(vertex_values=vertex_values) if known is None else Known(*known, vertex_values=vertex_values)
         return solve_mesh(self.model.detector, self, vertices, faces, SolveOptions(cutoff=cutoff, polish=polish), known)
 
-    def to(self, device) -> "NeuralShape":
+    def to(self, device) -> NeuralShape:
         """A copy whose tensors live on ``device`` (inputs on other devices are handled too)."""
         import copy
 
