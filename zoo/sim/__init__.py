@@ -5,9 +5,11 @@
 
 from __future__ import annotations
 
-from ..errors import require
+from ..errors import MissingDependencyError, require
 
-require("mujoco", extra="sim")
+if not hasattr(require("mujoco", extra="sim"), "mj_addContact"):  # the Python binding zoo.sim adds its contacts with
+    raise MissingDependencyError("zoo.sim needs a mujoco whose Python bindings have mj_addContact (tested on 4.0.0): "
+                                 "pip install -U 'mujoco>=4'")
 
 from .simulation import Simulation, StepRecord  # noqa: E402
 

@@ -164,8 +164,7 @@ class Simulation:
         if self.model.nv == 0:
             raise InputError("nothing moves: every body is fixed; give one a free, hinge or slide joint")
         self._warnings_seen = np.array([w.number for w in self.data.warning])
-        self._pairs = [(a, b) for a in self.bodies.values() if a.sdf is not None
-                       for b in self.bodies.values() if b.mesh is not None and b is not a]
+        self._pairs = _pairs(list(self.bodies.values()))
         self._sdf_boxes = {b.name: _bounds(b.sdf) for b in self.bodies.values() if b.sdf is not None}
         # a body pushed deeper than this into a mesh is reported: past its middle a thin mesh's contacts push it through
         self._tunnel_depth = TUNNEL_FRACTION * min((float((hi - lo).min()) for lo, hi in self._sdf_boxes.values()), default=math.inf)
@@ -352,6 +351,21 @@ class Simulation:
     def warnings(self) -> list[str]:
         """Every warning the log recorded, with the time of its step."""
         return [f"t={r.time:.4f}s: {w}" for r in self.log for w in r.warnings]
+
+
+def _pairs(bodies: list[Body]) -> list[tuple[Body, Body]]:
+    """(SDF body, mesh body) pairs to collide: one per two bodies, so two bodies that both hold an SDF and a
+    mesh are not collided both ways (two contact sets for one touch would make it twice as stiff); the
+    earlier-added body's SDF meets the later one's mesh. Fixed bodies never meet each other."""
+    pairs, seen = [], set()
+    for a in bodies:
+        for b in bodies:
+            key = frozenset((a.name, b.name))
+            if a is b or a.sdf is None or b.mesh is None or key in seen or (a.joint == "fixed" and b.joint == "fixed"):
+                continue
+            seen.add(key)
+            pairs.append((a, b))
+    return pairs
 
 
 def _bounds(sdf) -> tuple[np.ndarray, np.ndarray]:
