@@ -35,7 +35,7 @@ def collide(
         f"{summary['n_triangles']} triangles in {1e3 * s.timings['collide_s']:.1f} ms ({s.method}); "
         f"min depth {summary['min_depth']}"
     )
-    typer.echo(f"wrote {paths['json']} and {paths['png']}")
+    typer.echo(f"wrote {paths['json']}" + (f" and {paths['png']}" if paths["png"] else " (no PNG: pip install matplotlib, or sdfzoo[pipeline], for the picture)"))
 
 
 @app.command()

@@ -27,6 +27,7 @@ by its bare name: ``load_scene("demo-mug-rack")`` (:func:`resolve_scene`). Its p
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import time
@@ -221,13 +222,19 @@ def contacts_summary(scene: Scene, contacts) -> dict:
     }
 
 
-def write_outputs(scene: Scene, contacts, out_dir: str | os.PathLike) -> dict[str, Path]:
-    """Write ``<name>.json`` and ``<name>.png`` (both objects and their contacts: :mod:`zoo.scene_picture`) into ``out_dir``."""
+def write_outputs(scene: Scene, contacts, out_dir: str | os.PathLike) -> dict[str, Path | None]:
+    """Write ``<name>.json`` and ``<name>.png`` (both objects and their contacts: :mod:`zoo.scene_picture`) into ``out_dir``.
+
+    The picture needs matplotlib (``sdfzoo[pipeline]``); without it ``"png"`` is None and the
+    contacts are still written, since a runtime install need not draw.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path, png_path = out / f"{scene.name}.json", out / f"{scene.name}.png"
     atomic_write_text(json_path, json.dumps(contacts_summary(scene, contacts), indent=1))
-    from .scene_picture import plot_scene  # matplotlib, only when a picture is drawn
+    if importlib.util.find_spec("matplotlib") is None:
+        return {"json": json_path, "png": None}
+    from .scene_picture import plot_scene
 
     plot_scene(scene, contacts, png_path)
     return {"json": json_path, "png": png_path}
