@@ -20,10 +20,10 @@ from pathlib import Path
 import torch
 
 import zoo
-from pipeline.progress import progress_bar
 from pipeline.triangle_sampling import sample_constrained_triangles
 from zoo import solvers
 from zoo.files import atomic_write_text
+from zoo.progress import progress_bar
 
 FW_ITERS = (1, 2, 5, 10, 20, 50, 100)
 RESULT_NAME = "solvers.json"

@@ -36,10 +36,10 @@ from zoo.meshes import (
     Similarity,
     sample_sdf,
 )
+from zoo.progress import task_bar
 
 from .normalise import read_normalised, run_normalise
 from .presets import Presets
-from .progress import task_bar
 from .stages import Stage, run_stage
 
 SCHEMA_VERSION = 1

@@ -26,8 +26,7 @@ from pathlib import Path
 import torch
 
 from zoo.files import atomic_path
-
-from .progress import task_bar
+from zoo.progress import task_bar
 
 
 class CheckpointWarning(UserWarning):

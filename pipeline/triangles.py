@@ -40,9 +40,9 @@ from zoo.config import DictConfig
 from zoo.errors import DataError, InputError, require
 from zoo.files import atomic_path
 from zoo.geometry import bary_to_points
+from zoo.progress import task_bar
 
 from .presets import Presets
-from .progress import task_bar
 
 SCHEMA_VERSION = 1
 ARRAYS = ("vertices", "features", "vertex_sdf", "bary", "min_sdf", "shape_index")

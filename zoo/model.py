@@ -24,6 +24,7 @@ import torch
 
 from .errors import DataError, InputError, ModelNotFoundError
 from .neural import NeuralSDF, NeuralSDFConfig, NeuralShape, count_parameters, decode, init_code_cloud
+from .progress import task_bar
 
 FORMAT_VERSION = 1
 CONFIG = "config.json"
@@ -221,25 +222,19 @@ def fit_code_cloud(sdf: NeuralSDF, points: torch.Tensor, target: torch.Tensor, i
     decoder.requires_grad_(False)
     opt = torch.optim.Adam([{"params": [codes], "lr": lr}, {"params": [positions], "lr": lr_positions}])
     try:
-        for _ in _iterations(iters, progress):
-            rows = torch.randint(len(points), (points_per_iter,), generator=g).to(device)
-            pred = decode(decoder, points[rows].unsqueeze(0), positions, codes, sdf.config.eps).squeeze(0)
-            loss = (pred.clamp(-clamp, clamp) - target[rows].clamp(-clamp, clamp)).abs().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+        with task_bar(progress, "fit codes", iters) as bar:
+            for _ in range(iters):
+                rows = torch.randint(len(points), (points_per_iter,), generator=g).to(device)
+                pred = decode(decoder, points[rows].unsqueeze(0), positions, codes, sdf.config.eps).squeeze(0)
+                loss = (pred.clamp(-clamp, clamp) - target[rows].clamp(-clamp, clamp)).abs().mean()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                bar.advance()
     finally:
         for p, r in zip(decoder.parameters(), frozen):
             p.requires_grad_(r)
     return codes.detach()[0], positions.detach()[0]
-
-
-def _iterations(n: int, progress: bool):
-    if not progress:
-        return range(n)
-    from rich.progress import track
-
-    return track(range(n), description="fit codes")
 
 
 # --------------------------------------------------------------------------- reading and writing

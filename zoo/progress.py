@@ -1,12 +1,11 @@
-"""The one progress bar of the pipeline and the benches (rich), and a one-task helper over it.
+"""The one progress bar of sdfzoo (rich): the pipeline's stages, the benches, code fitting, simulations.
 
 :func:`progress_bar` is the factory: a :class:`rich.progress.Progress` with the house columns
 (description, bar, done/total, elapsed, remaining), inert when ``enabled`` is False so callers
 never branch on it. :func:`task_bar` wraps it for the common case of one task that advances
 step by step (training loops, per-shape stages).
 
-``zoo`` does not import this module (``import zoo`` must not load rich); its one progress
-display, ``zoo.model``'s code fitting, uses ``rich.progress.track`` lazily instead.
+rich is imported when a bar is made, not with this module, so ``import zoo`` does not load it.
 """
 
 from __future__ import annotations
