@@ -24,9 +24,9 @@ def simulate(
 ):
     """Simulate a scene: HDF5 trajectory (with provenance), per-step stats (JSON), a PNG of penetration, contacts and time per step."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     import zoo.sim
+    from zoo.progress import task_bar
     from zoo.sim.record import Recorder, provenance
 
     console = Console()
@@ -34,13 +34,11 @@ def simulate(
     seconds = sim.seconds if seconds is None else seconds
     steps = max(0, int(round(seconds / sim.dt)))
     recorder = Recorder(sim)
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=console, disable=not progress) as bar:
-        task = bar.add_task(f"{sim.name}: {seconds:g} s at dt {sim.dt * 1e3:g} ms", total=steps)
+    with task_bar(progress, f"{sim.name}: {seconds:g} s at dt {sim.dt * 1e3:g} ms", steps) as bar:
         for _ in range(steps):
             sim.step()
             recorder(sim)
-            bar.update(task, advance=1)
+            bar.advance()
     paths = recorder.write(out, provenance(sim, sim.scene_path))
     summary = recorder.summary()
     console.print(
