@@ -1,4 +1,4 @@
-"""`zoo simulate SCENE.toml`: a contact simulation (MuJoCo with sdfzoo's contacts), its trajectory, stats and plot.
+"""`zoo simulate SCENE.toml`: a contact simulation (MuJoCo with sdfzoo's contacts), its trajectory, stats, plot and animation.
 
 Registered by :func:`cli.main.register_commands`; needs the ``sim`` extra (mujoco, h5py).
 """
@@ -19,10 +19,13 @@ def simulate(
     seconds: float = typer.Option(None, "--seconds", help="Simulated time (default: the scene's \\[sim] seconds)."),
     dt: float = typer.Option(None, "--dt", help="Time step, s (default: the scene's)."),
     method: str = typer.Option(None, "--method", help="zoo.collide's narrow phase: fw, pgd, voxel-fw, amortized (default: the scene's)."),
-    out: Path = typer.Option(Path("out/simulate"), "--out", help="Folder for <name>.h5, .json and .png."),
+    out: Path = typer.Option(Path("out/simulate"), "--out", help="Folder for <name>.h5, .json, .png and .gif."),
+    animation: bool = typer.Option(True, "--animation/--no-animation", help="Also write <name>.gif: the bodies and their contacts (red), "
+                                   "at most 60 frames over the run."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar with ETA."),
 ):
-    """Simulate a scene: HDF5 trajectory (with provenance), per-step stats (JSON), a PNG of penetration, contacts and time per step."""
+    """Simulate a scene: HDF5 trajectory (with provenance), per-step stats (JSON), a PNG of penetration, contacts and time per step,
+    and an animation (GIF) of the bodies and their contacts."""
     from rich.console import Console
 
     import zoo.sim
@@ -39,7 +42,7 @@ def simulate(
             sim.step()
             recorder(sim)
             bar.advance()
-    paths = recorder.write(out, provenance(sim, sim.scene_path))
+    paths = recorder.write(out, provenance(sim, sim.scene_path), animation=animation)
     summary = recorder.summary()
     console.print(
         f"{summary['steps']} steps, {summary['simulated_s']:.3f} s simulated; max penetration "

@@ -1,8 +1,10 @@
-"""What a simulation run leaves behind: the trajectory (HDF5 with provenance), per-step stats (JSON), a PNG.
+"""What a simulation run leaves behind: the trajectory (HDF5 with provenance), per-step stats (JSON), a PNG
+and an animation (GIF).
 
-:class:`Recorder` is a ``Simulation.run`` callback that keeps each body's pose and velocity per
-step; :meth:`Recorder.write` writes ``<name>.h5``, ``<name>.json`` and ``<name>.png``. h5py and
-matplotlib are imported only there (the ``sim`` extra).
+:class:`Recorder` is a ``Simulation.run`` callback that keeps each body's pose and velocity and the
+contact points per step; :meth:`Recorder.write` writes ``<name>.h5``, ``<name>.json``, ``<name>.png``
+and ``<name>.gif`` (:mod:`zoo.sim.animation`). h5py, matplotlib and imageio are imported only there
+(the ``sim`` extra).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from ..files import atomic_path, atomic_write_text
 
 
 class Recorder:
-    """Collects, after each step, the time and every body's pose (4, 4) and velocity (6,)."""
+    """Collects, after each step, the time, every body's pose (4, 4) and velocity (6,), and the contact points (K, 3)."""
 
     def __init__(self, sim):
         self.sim = sim
@@ -30,12 +32,15 @@ class Recorder:
         self.poses: list[np.ndarray] = []  # each (B, 4, 4)
         self.velocities: list[np.ndarray] = []  # each (B, 6)
         self.energy: list[float] = []
+        self.contact_points: list[np.ndarray] = []  # each (K, 3) float32, world frame: what the animation draws
 
     def __call__(self, sim) -> None:
         self.times.append(sim.time)
         self.poses.append(np.stack([sim.pose(n) for n in self.names]))
         self.velocities.append(np.stack([sim.velocity(n) for n in self.names]))
         self.energy.append(sim.energy())
+        points = sim.contacts.points if sim.contacts is not None else np.zeros((0, 3))
+        self.contact_points.append(np.asarray(points, dtype=np.float32).reshape(-1, 3))
 
     def summary(self) -> dict:
         """Totals over the run: steps, contacts, deepest penetration, time per step, warnings."""
@@ -52,8 +57,9 @@ class Recorder:
             "finite": bool(all(np.isfinite(p).all() for p in self.poses)),
         }
 
-    def write(self, out_dir: str | os.PathLike, provenance: dict) -> dict[str, Path]:
-        """Write ``<name>.h5`` (trajectory, provenance attributes), ``<name>.json`` and ``<name>.png``."""
+    def write(self, out_dir: str | os.PathLike, provenance: dict, animation: bool = True) -> dict[str, Path]:
+        """Write ``<name>.h5`` (trajectory, provenance attributes), ``<name>.json``, ``<name>.png`` and, with
+        ``animation``, ``<name>.gif`` (the bodies and their contacts, :mod:`zoo.sim.animation`)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         name = getattr(self.sim, "name", "simulation")
@@ -62,6 +68,12 @@ class Recorder:
         stats = {"provenance": provenance, "summary": self.summary(), "steps": [asdict(r) for r in self.sim.log]}
         atomic_write_text(paths["json"], json.dumps(stats, indent=1, default=_jsonable))
         self._write_png(paths["png"], name)
+        if animation and self.poses:
+            from .animation import write_animation
+
+            paths["gif"] = out / f"{name}.gif"
+            write_animation(paths["gif"], [self.sim.bodies[n] for n in self.names], np.stack(self.poses), self.contact_points,
+                            np.asarray(self.times), title=f"{name} ({self.sim.method})")
         return paths
 
     def _write_h5(self, path: Path, provenance: dict) -> None:
@@ -78,6 +90,10 @@ class Recorder:
                 g = f.create_group(f"bodies/{body}")
                 g.create_dataset("pose", data=np.stack([p[i] for p in self.poses]) if self.poses else np.zeros((0, 4, 4)))
                 g.create_dataset("velocity", data=np.stack([v[i] for v in self.velocities]) if self.velocities else np.zeros((0, 6)))
+            # contact points of every step, ragged: step i's are points[offsets[i]:offsets[i + 1]]
+            counts = [len(c) for c in self.contact_points]
+            f.create_dataset("contacts/offsets", data=np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]))
+            f.create_dataset("contacts/points", data=np.concatenate(self.contact_points) if counts else np.zeros((0, 3), np.float32))
             for key in ("contacts", "raw_contacts", "max_penetration", "collide_s", "step_s", "margin"):
                 f.create_dataset(f"stats/{key}", data=np.asarray([getattr(r, key) for r in log]))
 

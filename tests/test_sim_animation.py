@@ -1,0 +1,71 @@
+"""zoo.sim.animation: the GIF `zoo simulate` writes of the bodies and their contacts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+pytest.importorskip("matplotlib")
+iio = pytest.importorskip("imageio.v3")
+
+import zoo  # noqa: E402
+import zoo.sim  # noqa: E402
+from zoo.sim.animation import frame_steps  # noqa: E402
+from zoo.sim.record import Recorder  # noqa: E402
+
+STEPS = 20
+
+
+def small_plane(half: float = 0.15):
+    """A 30 cm square in z = 0 as 2 triangles: (V (4, 3), F (2, 3))."""
+    v = np.array([(-half, -half, 0), (half, -half, 0), (half, half, 0), (-half, half, 0)], dtype=np.float64)
+    return v, np.array([(0, 1, 2), (0, 2, 3)])
+
+
+@pytest.fixture(scope="module")
+def dropped_sphere(tmp_path_factory):
+    """A sphere released 4 mm above a small plane, 20 steps recorded and written: (recorder, paths)."""
+    sim = zoo.sim.Simulation(dt=0.002, method="fw")
+    sim.name = "drop"
+    sim.add_body("ball", sdf=zoo.Sphere(radius=0.05), mass=1.0,
+                 pose=np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.054], [0, 0, 0, 1]], dtype=float))
+    sim.add_body("ground", mesh=small_plane(), joint="fixed")
+    recorder = Recorder(sim)
+    sim.run(STEPS * sim.dt, recorder)
+    return recorder, recorder.write(tmp_path_factory.mktemp("sim"), {"test": "animation"})
+
+
+def red(frame: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the contact markers' pure red (the sphere is blue, the plane grey)."""
+    r, g, b = (frame[..., i].astype(int) for i in range(3))
+    return (r > 180) & (g < 80) & (b < 80)
+
+
+def test_gif_has_a_frame_per_step_the_sphere_moves_and_contacts_are_red(dropped_sphere):
+    recorder, paths = dropped_sphere
+    assert paths["gif"].name == "drop.gif" and paths["gif"].stat().st_size > 0
+    frames = iio.imread(paths["gif"], index=None)
+    assert frames.shape[0] == STEPS and frames.shape[-1] == 3
+    assert np.abs(frames[0].astype(int) - frames[-1].astype(int)).sum(-1).astype(bool).mean() > 0.001  # it fell
+    touching = [len(c) > 0 for c in recorder.contact_points]
+    assert any(touching) and not all(touching)  # released above the plane, it lands within the run
+    for frame, touches in zip(frames, touching):
+        assert red(frame).any() == touches
+
+
+def test_contacts_are_kept_in_the_trajectory(dropped_sphere):
+    import h5py
+
+    recorder, paths = dropped_sphere
+    with h5py.File(paths["h5"]) as f:
+        offsets, points = f["contacts/offsets"][:], f["contacts/points"][:]
+    assert len(offsets) == STEPS + 1 and offsets[-1] == len(points) == sum(len(c) for c in recorder.contact_points)
+    assert np.abs(points[:, 2]).max() < 2e-3  # on the plane
+
+
+def test_frames_are_spread_over_the_run_and_capped():
+    assert frame_steps(20, 60).tolist() == list(range(20))
+    steps = frame_steps(1000, 60)
+    assert len(steps) == 60 and steps[0] == 0 and steps[-1] == 999
+    assert len(frame_steps(0)) == 0
