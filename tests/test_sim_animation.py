@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -15,6 +17,7 @@ from zoo.sim.animation import frame_steps  # noqa: E402
 from zoo.sim.record import Recorder  # noqa: E402
 
 STEPS = 20
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def small_plane(half: float = 0.15):
@@ -69,3 +72,19 @@ def test_frames_are_spread_over_the_run_and_capped():
     steps = frame_steps(1000, 60)
     assert len(steps) == 60 and steps[0] == 0 and steps[-1] == 999
     assert len(frame_steps(0)) == 0
+
+
+@pytest.mark.parametrize("flag, gif", [([], True), (["--no-animation"], False)])
+def test_zoo_simulate_writes_the_gif_unless_told_not_to(tmp_path, flag, gif):
+    from typer.testing import CliRunner
+
+    from cli import sim as _  # noqa: F401  (registers the command)
+    from cli.main import app, register_commands
+
+    register_commands()
+    result = CliRunner().invoke(app, ["simulate", str(ROOT / "scenes" / "ring-rack.toml"), "--seconds", "0.006", "--dt", "0.002",
+                                      "--out", str(tmp_path), "--no-progress", *flag])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "ring-rack.png").exists() and (tmp_path / "ring-rack.gif").exists() == gif
+    if gif:
+        assert iio.imread(tmp_path / "ring-rack.gif", index=None).shape[0] == 3

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import require
 from ..files import atomic_path
-from ..scene_picture import _draw_panel, posed, surface_points
+from ..scene_picture import MESH_COLOUR, SDF_COLOUR, _draw_panel, clipped_to_cube, posed, shaded, surface_points
 from .contacts import face_normals
 
 MAX_FRAMES = 60
@@ -45,19 +45,26 @@ class Drawable:
     def corners(self) -> np.ndarray:
         """The 8 corners of its geometry's box, own frame: (8, 3)."""
         everything = np.concatenate([self.triangles.reshape(-1, 3), self.points])
-        lo, hi = everything.min(0), everything.max(0)
-        return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
+        if not len(everything):
+            return np.zeros((0, 3))
+        return cube_corners(everything.min(0), everything.max(0))
 
 
-def drawable(body, max_points: int = SURFACE_POINTS) -> Drawable:
+def cube_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of the box with corners ``lo`` and ``hi`` (3,)."""
+    return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def drawable(body, box=None, max_points: int = SURFACE_POINTS) -> Drawable:
     """A :class:`zoo.sim.model.Body` as a :class:`Drawable`: its mesh where it holds one (exact and cheap),
-    else its SDF's surface sampled once (:func:`zoo.scene_picture.surface_points`)."""
+    else its SDF's surface sampled once (:func:`zoo.scene_picture.surface_points`), within ``box`` (two (3,)
+    corners, its own frame) if given."""
     none = np.zeros((0, 3))
     if body.mesh is not None:
         vertices, faces = body.mesh
         triangles = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
         return Drawable(triangles, face_normals(triangles), none, none, body.joint == "fixed")
-    points, normals = surface_points(body.sdf, max_points=max_points)
+    points, normals = surface_points(body.sdf, box, max_points=max_points)
     return Drawable(none.reshape(0, 3, 3), none, points, normals, body.joint == "fixed")
 
 
@@ -69,8 +76,8 @@ def frame_steps(n_steps: int, max_frames: int = MAX_FRAMES) -> np.ndarray:
 
 
 def framing(drawables: list[Drawable], poses: np.ndarray) -> tuple[np.ndarray, float]:
-    """The fixed camera's cube, (centre (3,), half-side): every body over every pose (T, B, 4, 4); where
-    the fixed bodies are far wider than the moving ones' path (a large ground), a cube around the moving ones."""
+    """The whole run's fixed camera cube, (centre (3,), half-side): every body over every pose (T, B, 4, 4);
+    where the fixed bodies are far wider than the moving ones' path (a large ground), a cube around the moving ones."""
     def box(indices):
         world = np.concatenate([posed(pose, drawables[b].corners()) for b in indices for pose in poses[:, b]])
         lo, hi = world.min(0), world.max(0)
@@ -84,21 +91,42 @@ def framing(drawables: list[Drawable], poses: np.ndarray) -> tuple[np.ndarray, f
     return everything if everything[1] <= FOCUS * radius else (centre, 2.0 * radius)
 
 
+def close_up(contacts: list[np.ndarray], drawables: list[Drawable]) -> tuple[np.ndarray, float] | None:
+    """The contacts' cube over the run, :func:`zoo.scene_picture.plot_scene`'s close-up: (centre, half-side), or None."""
+    points = np.concatenate([np.zeros((0, 3))] + [np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in contacts])
+    if not len(points):
+        return None
+    sizes = [float(np.ptp(d.points, axis=0).max()) for d in drawables if len(d.points)]
+    return points.mean(0), max(0.75 * float(np.ptp(points, axis=0).max()), 0.12 * max(sizes, default=0.0), 1e-4)
+
+
+def local_box(poses: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The box (two (3,) corners) in a body's frame that holds the world cube around ``centre`` at every pose (T, 4, 4)."""
+    corners = cube_corners(centre - radius, centre + radius)
+    local = np.concatenate([(corners - p[:3, 3]) @ p[:3, :3] for p in poses])  # world -> body (poses are rigid)
+    return local.min(0), local.max(0)
+
+
 def world_geometry(drawables: list[Drawable], poses: np.ndarray):
-    """Every body at one step's poses (B, 4, 4): triangles (F, 3, 3), their normals (F, 3), surface
-    points (P, 3) and their normals (P, 3), world frame."""
+    """Bodies at one step's poses (B, 4, 4): triangles (F, 3, 3), their normals (F, 3), surface points (P, 3)
+    and their normals (P, 3), world frame."""
     rotations = [pose[:3, :3] for pose in poses]
-    triangles = np.concatenate([posed(p, d.triangles.reshape(-1, 3)).reshape(-1, 3, 3) for d, p in zip(drawables, poses)])
-    tri_normals = np.concatenate([d.face_normals @ r.T for d, r in zip(drawables, rotations)])
-    points = np.concatenate([posed(p, d.points) for d, p in zip(drawables, poses)])
-    normals = np.concatenate([d.normals @ r.T for d, r in zip(drawables, rotations)])
+    triangles = np.concatenate([np.zeros((0, 3, 3))] + [posed(p, d.triangles.reshape(-1, 3)).reshape(-1, 3, 3) for d, p in zip(drawables, poses)])
+    tri_normals = np.concatenate([np.zeros((0, 3))] + [d.face_normals @ r.T for d, r in zip(drawables, rotations)])
+    points = np.concatenate([np.zeros((0, 3))] + [posed(p, d.points) for d, p in zip(drawables, poses)])
+    normals = np.concatenate([np.zeros((0, 3))] + [d.normals @ r.T for d, r in zip(drawables, rotations)])
     return triangles, tri_normals, points, normals
 
 
 def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, contacts: list[np.ndarray],
                     times: np.ndarray, title: str = "", max_frames: int = MAX_FRAMES, fps: float = FPS,
-                    size_px: int = 480) -> int:
+                    panel_px: int = 440) -> int:
     """Write a GIF of a run and return its number of frames.
+
+    Two panels when the run has contacts, one camera each for the whole run: the scene, and a close-up
+    of where the contacts lie (the SDF bodies' surfaces sampled once more, densely, inside it). The fixed
+    bodies are drawn once (blitted background, :mod:`zoo.scene_picture` draws them behind the points);
+    per frame only the moving bodies and the contacts.
 
     Args:
         bodies: the :class:`zoo.sim.model.Body` of each recorded body, in the order of ``poses``.
@@ -116,23 +144,56 @@ def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, co
     steps = frame_steps(len(poses), max_frames)
     if not len(steps):
         return 0
-    drawables = [drawable(b) for b in bodies]
-    centre, radius = framing(drawables, poses)
-    fig = plt.figure(figsize=(size_px / 100, size_px / 100), dpi=100)
-    ax = fig.add_subplot(projection="3d", computed_zorder=False)
+    shown = poses[steps]
+    overall = [drawable(b) for b in bodies]
+    views = [("the scene", framing(overall, shown), overall)]
+    near = close_up([contacts[t] for t in steps], overall)
+    if near is not None:
+        views.append(("close-up of the contacts", near,
+                      [drawable(b, local_box(shown[:, i], *near)) for i, b in enumerate(bodies)]))
+    fig = plt.figure(figsize=(len(views) * panel_px / 100, panel_px / 100 + 0.4), dpi=100)
+    axes = []
+    for i, (name, (centre, radius), drawables) in enumerate(views):
+        ax = fig.add_subplot(1, len(views), i + 1, projection="3d", computed_zorder=False)
+        fixed = [d for d in drawables if d.fixed]
+        empty = np.zeros((0, 3))
+        _draw_panel(ax, centre, radius, *world_geometry(fixed, shown[0, [d.fixed for d in drawables]])[:2], empty, empty, empty, None)
+        ax.set_title(name, fontsize=9)
+        axes.append(ax)
+    caption = fig.suptitle("", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    fig.canvas.draw()
+    background = fig.canvas.copy_from_bbox(fig.bbox)
     frames = []
-    for t in steps:
-        ax.cla()
-        _draw_panel(ax, centre, radius, *world_geometry(drawables, poses[t]), np.zeros((0, 3)), None)
-        points = np.asarray(contacts[t], dtype=np.float64).reshape(-1, 3)
-        if len(points):  # larger than the picture's: a GIF frame is small
-            ax.scatter(*points.T, color="red", s=CONTACT_SIZE, depthshade=False, edgecolors="darkred", linewidths=0.5)
-        ax.set_title(f"{title}\nt = {times[t]:.3f} s, {len(contacts[t])} contacts (red)", fontsize=9)
-        fig.canvas.draw()
+    for k, t in enumerate(steps):
+        fig.canvas.restore_region(background)
+        for ax, (_, (centre, radius), drawables) in zip(axes, views):
+            moving = [d.fixed is False for d in drawables]
+            geometry = world_geometry([d for d in drawables if not d.fixed], shown[k, moving])
+            draw_moving(ax, centre, radius, *geometry, np.asarray(contacts[t], dtype=np.float64).reshape(-1, 3))
+        caption.set_text(f"{title}   t = {times[t]:.3f} s, {len(contacts[t])} contacts (red)")
+        fig.draw_artist(caption)
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)
     write_gif(path, frames, fps)
     return len(frames)
+
+
+def draw_moving(ax, centre, radius, triangles, tri_normals, points, normals, contacts) -> None:
+    """Draw one frame's moving bodies and contacts over ``ax``'s restored background, then take them off:
+    their shaded triangles, their shaded surface points and the contacts (red, last), inside the panel's cube."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    polygons, source = clipped_to_cube(triangles, centre, radius)
+    artists = [ax.add_collection3d(Poly3DCollection(polygons, facecolors=shaded(MESH_COLOUR, tri_normals[source]), linewidths=0))]
+    inside = np.abs(points - centre).max(1) < radius
+    artists.append(ax.scatter(*points[inside].T, c=shaded(SDF_COLOUR, normals[inside]), s=4.0, depthshade=False, linewidths=0))
+    inside = np.abs(contacts - centre).max(1) < radius
+    artists.append(ax.scatter(*contacts[inside].T, color="red", s=CONTACT_SIZE, depthshade=False, edgecolors="darkred", linewidths=0.5))
+    for artist in artists:
+        artist.do_3d_projection()  # Axes3D.draw would; drawing one artist alone does not
+        ax.draw_artist(artist)
+        artist.remove()
 
 
 def write_gif(path: str | os.PathLike, frames: list[np.ndarray], fps: float) -> None:
