@@ -1,15 +1,19 @@
 """An animation of a simulation run: the bodies and their contacts, frame by frame, as a GIF.
 
-Drawn with matplotlib (Agg) and written by Pillow (matplotlib's own dependency): no GPU, no OpenGL. MuJoCo's offscreen renderer
-(``mujoco.Renderer``) was tried: it opens a headless context with ``MUJOCO_GL=egl`` on the development
-machine (``osmesa`` fails there), but the model zoo.sim builds has nothing to show (one 1 mm carrier
-sphere per body; an SDF has no mesh without marching cubes), and many hosts have no EGL at all. So the
-picture is :mod:`zoo.scene_picture`'s, drawn by its helpers: mesh bodies as their shaded triangles, SDF
-bodies as shaded points on their surface, each step's contacts as red points, drawn last.
+Drawn with matplotlib (Agg) and written by Pillow (matplotlib's own dependency): no GPU, no OpenGL.
+MuJoCo's offscreen renderer (``mujoco.Renderer``) was tried first: it opens a headless context with
+``MUJOCO_GL=egl`` on the development machine (``osmesa`` fails there), but the model zoo.sim builds has
+nothing to show (one 1 mm carrier sphere per body; an SDF has no mesh without marching cubes), and many
+hosts have no EGL at all. So the picture is :mod:`zoo.scene_picture`'s, drawn with its helpers: mesh
+bodies as their shaded triangles, SDF bodies as shaded points on their surface, each step's contacts as
+red points. As there, draw order is fixed, not depth: meshes, then surface points, then contacts, so a
+contact is never hidden (and an SDF body's points show over a mesh even where they are behind it).
 
-Cheap by construction: at most ``max_frames`` frames spread over the run; each SDF body's surface is
-sampled once in its own frame and moved by its pose per frame (no SDF query per frame); one fixed
-camera (:data:`zoo.scene_picture.VIEW`) frames the bodies over the whole run.
+Two panels when the run has contacts: the scene, and a close-up of where the contacts lie; each with
+one camera (:data:`zoo.scene_picture.VIEW`) for the whole run. Cheap by construction: at most
+``max_frames`` frames spread over the run; each SDF body's surface is sampled once in its own frame
+(once more, densely, for the close-up) and moved by its pose per frame (no SDF query per frame); fixed
+bodies are drawn once as a background that each frame starts from (blitting).
 """
 
 from __future__ import annotations
@@ -123,10 +127,7 @@ def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, co
                     panel_px: int = 440) -> int:
     """Write a GIF of a run and return its number of frames.
 
-    Two panels when the run has contacts, one camera each for the whole run: the scene, and a close-up
-    of where the contacts lie (the SDF bodies' surfaces sampled once more, densely, inside it). The fixed
-    bodies are drawn once (blitted background, :mod:`zoo.scene_picture` draws them behind the points);
-    per frame only the moving bodies and the contacts.
+    See the module docstring for what is drawn and how.
 
     Args:
         bodies: the :class:`zoo.sim.model.Body` of each recorded body, in the order of ``poses``.
@@ -151,24 +152,12 @@ def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, co
     if near is not None:
         views.append(("close-up of the contacts", near,
                       [drawable(b, local_box(shown[:, i], *near)) for i, b in enumerate(bodies)]))
-    fig = plt.figure(figsize=(len(views) * panel_px / 100, panel_px / 100 + 0.4), dpi=100)
-    axes = []
-    for i, (name, (centre, radius), drawables) in enumerate(views):
-        ax = fig.add_subplot(1, len(views), i + 1, projection="3d", computed_zorder=False)
-        fixed = [d for d in drawables if d.fixed]
-        empty = np.zeros((0, 3))
-        _draw_panel(ax, centre, radius, *world_geometry(fixed, shown[0, [d.fixed for d in drawables]])[:2], empty, empty, empty, None)
-        ax.set_title(name, fontsize=9)
-        axes.append(ax)
-    caption = fig.suptitle("", fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1, 0.94))
-    fig.canvas.draw()
-    background = fig.canvas.copy_from_bbox(fig.bbox)
+    fig, axes, caption, background = still_figure(plt, views, shown[0], panel_px)
     frames = []
     for k, t in enumerate(steps):
         fig.canvas.restore_region(background)
         for ax, (_, (centre, radius), drawables) in zip(axes, views):
-            moving = [d.fixed is False for d in drawables]
+            moving = np.array([not d.fixed for d in drawables])
             geometry = world_geometry([d for d in drawables if not d.fixed], shown[k, moving])
             draw_moving(ax, centre, radius, *geometry, np.asarray(contacts[t], dtype=np.float64).reshape(-1, 3))
         caption.set_text(f"{title}   t = {times[t]:.3f} s, {len(contacts[t])} contacts (red)")
@@ -177,6 +166,24 @@ def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, co
     plt.close(fig)
     write_gif(path, frames, fps)
     return len(frames)
+
+
+def still_figure(plt, views: list, poses: np.ndarray, panel_px: int):
+    """The figure with what never moves drawn: one 3D panel per view (name, (centre, half-side), drawables),
+    the fixed bodies at ``poses`` (B, 4, 4); (figure, panels, the caption to fill, the canvas to restore per frame)."""
+    fig = plt.figure(figsize=(len(views) * panel_px / 100, panel_px / 100 + 0.4), dpi=100)
+    axes, empty = [], np.zeros((0, 3))
+    for i, (name, (centre, radius), drawables) in enumerate(views):
+        ax = fig.add_subplot(1, len(views), i + 1, projection="3d", computed_zorder=False)
+        fixed = np.array([d.fixed for d in drawables])
+        triangles, normals = world_geometry([d for d in drawables if d.fixed], poses[fixed])[:2]
+        _draw_panel(ax, centre, radius, triangles, normals, empty, empty, empty, None)
+        ax.set_title(name, fontsize=9)
+        axes.append(ax)
+    caption = fig.suptitle("", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    fig.canvas.draw()
+    return fig, axes, caption, fig.canvas.copy_from_bbox(fig.bbox)
 
 
 def draw_moving(ax, centre, radius, triangles, tri_normals, points, normals, contacts) -> None:
