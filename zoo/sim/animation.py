@@ -59,7 +59,7 @@ def cube_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def drawable(body, box=None, max_points: int = SURFACE_POINTS) -> Drawable:
+def drawable(body, box=None, resolution: int = 28, max_points: int = SURFACE_POINTS) -> Drawable:
     """A :class:`zoo.sim.model.Body` as a :class:`Drawable`: its mesh where it holds one (exact and cheap),
     else its SDF's surface sampled once (:func:`zoo.scene_picture.surface_points`), within ``box`` (two (3,)
     corners, its own frame) if given."""
@@ -68,7 +68,7 @@ def drawable(body, box=None, max_points: int = SURFACE_POINTS) -> Drawable:
         vertices, faces = body.mesh
         triangles = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
         return Drawable(triangles, face_normals(triangles), none, none, body.joint == "fixed")
-    points, normals = surface_points(body.sdf, box, max_points=max_points)
+    points, normals = surface_points(body.sdf, box, resolution=resolution, max_points=max_points)
     return Drawable(none.reshape(0, 3, 3), none, points, normals, body.joint == "fixed")
 
 
@@ -96,12 +96,14 @@ def framing(drawables: list[Drawable], poses: np.ndarray) -> tuple[np.ndarray, f
 
 
 def close_up(contacts: list[np.ndarray], drawables: list[Drawable]) -> tuple[np.ndarray, float] | None:
-    """The contacts' cube over the run, :func:`zoo.scene_picture.plot_scene`'s close-up: (centre, half-side), or None."""
+    """The cube around every contact of the run, (centre (3,), half-side), or None: at least an eighth of the
+    largest SDF body (:func:`zoo.scene_picture.plot_scene`'s close-up is around one step's contacts)."""
     points = np.concatenate([np.zeros((0, 3))] + [np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in contacts])
     if not len(points):
         return None
     sizes = [float(np.ptp(d.points, axis=0).max()) for d in drawables if len(d.points)]
-    return points.mean(0), max(0.75 * float(np.ptp(points, axis=0).max()), 0.12 * max(sizes, default=0.0), 1e-4)
+    lo, hi = points.min(0), points.max(0)
+    return (lo + hi) / 2, max(0.6 * float((hi - lo).max()), 0.12 * max(sizes, default=0.0), 1e-4)
 
 
 def local_box(poses: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -151,7 +153,7 @@ def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, co
     near = close_up([contacts[t] for t in steps], overall)
     if near is not None:
         views.append(("close-up of the contacts", near,
-                      [drawable(b, local_box(shown[:, i], *near)) for i, b in enumerate(bodies)]))
+                      [drawable(b, local_box(shown[:, i], *near), 40, 2 * SURFACE_POINTS) for i, b in enumerate(bodies)]))
     fig, axes, caption, background = still_figure(plt, views, shown[0], panel_px)
     frames = []
     for k, t in enumerate(steps):
