@@ -149,7 +149,10 @@ def write_animation(path: str | os.PathLike, bodies: list, poses: np.ndarray, co
         return 0
     shown = poses[steps]
     overall = [drawable(b) for b in bodies]
-    views = [("the scene", framing(overall, shown), overall)]
+    scene = framing(overall, shown)
+    # a fixed SDF body (a ground) may reach far out of the view: sampled again, within it
+    overall = [drawable(b, local_box(shown[:1, i], *scene)) if d.fixed else d for i, (b, d) in enumerate(zip(bodies, overall))]
+    views = [("the scene", scene, overall)]
     near = close_up([contacts[t] for t in steps], overall)
     if near is not None:
         views.append(("close-up of the contacts", near,
@@ -174,12 +177,11 @@ def still_figure(plt, views: list, poses: np.ndarray, panel_px: int):
     """The figure with what never moves drawn: one 3D panel per view (name, (centre, half-side), drawables),
     the fixed bodies at ``poses`` (B, 4, 4); (figure, panels, the caption to fill, the canvas to restore per frame)."""
     fig = plt.figure(figsize=(len(views) * panel_px / 100, panel_px / 100 + 0.4), dpi=100)
-    axes, empty = [], np.zeros((0, 3))
+    axes, empty = [], np.zeros((0, 3))  # no contacts in the still
     for i, (name, (centre, radius), drawables) in enumerate(views):
         ax = fig.add_subplot(1, len(views), i + 1, projection="3d", computed_zorder=False)
         fixed = np.array([d.fixed for d in drawables])
-        triangles, normals = world_geometry([d for d in drawables if d.fixed], poses[fixed])[:2]
-        _draw_panel(ax, centre, radius, triangles, normals, empty, empty, empty, None)
+        _draw_panel(ax, centre, radius, *world_geometry([d for d in drawables if d.fixed], poses[fixed]), empty, None)
         ax.set_title(name, fontsize=9)
         axes.append(ax)
     caption = fig.suptitle("", fontsize=10)
