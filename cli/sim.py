@@ -30,6 +30,7 @@ def simulate(
 
     import zoo.sim
     from zoo.progress import task_bar
+    from zoo.sim.animation import MAX_FRAMES
     from zoo.sim.record import Recorder, provenance
 
     console = Console()
@@ -42,6 +43,8 @@ def simulate(
             sim.step()
             recorder(sim)
             bar.advance()
+    if animation:
+        console.print(f"drawing the animation ({min(steps, MAX_FRAMES)} frames)")
     paths = recorder.write(out, provenance(sim, sim.scene_path), animation=animation)
     summary = recorder.summary()
     console.print(

@@ -88,3 +88,24 @@ def test_zoo_simulate_writes_the_gif_unless_told_not_to(tmp_path, flag, gif):
     assert (tmp_path / "ring-rack.png").exists() and (tmp_path / "ring-rack.gif").exists() == gif
     if gif:
         assert iio.imread(tmp_path / "ring-rack.gif", index=None).shape[0] == 3
+
+
+def test_a_moving_mesh_on_a_fixed_sdf_ground_is_drawn(tmp_path):
+    """The other way round: the mesh body moves (drawn per frame), the SDF body is a fixed ground (the still)."""
+    import torch
+    import trimesh
+
+    sim = zoo.sim.Simulation(dt=0.002, method="fw")
+    sim.name = "cube"
+    sim.add_body("floor", sdf=zoo.Box(half_extents=torch.tensor([0.2, 0.2, 0.02])), joint="fixed")
+    sim.add_body("cube", mesh=trimesh.creation.box(extents=(0.06, 0.06, 0.06)), mass=0.2,
+                 pose=np.array([[1, 0, 0, 0.02], [0, 1, 0, 0], [0, 0, 1, 0.052], [0, 0, 0, 1]], dtype=float))
+    recorder = Recorder(sim)
+    sim.run(0.02, recorder)
+    frames = iio.imread(recorder.write(tmp_path, {})["gif"], index=None)
+    assert frames.shape[0] == 10
+    r, g, b = (frames[..., i].astype(int) for i in range(3))
+    assert ((b > r + 60) & (b > 120)).any(axis=(1, 2)).all()  # the ground's blue surface points in every frame
+    grey = (np.abs(r - g) < 12) & (np.abs(g - b) < 12) & (r > 60) & (r < 200)  # the cube's shaded faces
+    assert grey.sum(axis=(1, 2)).min() > 1000
+    assert [red(f).any() for f in frames] == [len(c) > 0 for c in recorder.contact_points]
