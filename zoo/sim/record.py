@@ -3,7 +3,7 @@ and an animation (GIF).
 
 :class:`Recorder` is a ``Simulation.run`` callback that keeps each body's pose and velocity and the
 contact points per step; :meth:`Recorder.write` writes ``<name>.h5``, ``<name>.json``, ``<name>.png``
-and ``<name>.gif`` (:mod:`zoo.sim.animation`). h5py, matplotlib and imageio are imported only there
+and ``<name>.gif`` (:mod:`zoo.sim.animation`). h5py, matplotlib and Pillow are imported only there
 (the ``sim`` extra).
 """
 
