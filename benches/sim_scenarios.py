@@ -350,6 +350,44 @@ def _gripper_carried(sim, trace, extra) -> dict:
             "surface_y": extra["surface_y"], "passed": bool(rise > 0.008 and shift > 0.008 and slip < 0.002)}
 
 
+NATIVE_GRIP_XML = """<mujoco><option timestep="0.002" integrator="implicitfast"/><default><geom solref="0.01 1"/></default>
+<worldbody><geom type="plane" size="1 1 0.1"/>
+<body name="mug" pos="0 0 0.0405"><freejoint/><geom type="box" size="0.04 0.04 0.04" mass="0.2"/></body>
+<body name="left_finger" pos="0 0.048 0.05"><freejoint/><geom type="box" size="0.01 0.005 0.02" mass="1"/></body>
+<body name="right_finger" pos="0 -0.048 0.05"><freejoint/><geom type="box" size="0.01 0.005 0.02" mass="1"/></body>
+</worldbody></mujoco>"""
+
+
+def native_grip() -> dict:
+    """The gripper's prescribed motion on MuJoCo's own contacts: an 8 cm, 0.2 kg box between two box
+    fingers closing 1.5 mm into it (same phases, gravity compensation and friction 1), no sdfzoo.
+    Tells the contact pipeline's slip from the control scheme's."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(NATIVE_GRIP_XML)
+    data = mujoco.MjData(model)
+    joints = {f: (model.jnt_qposadr[model.body(f).jntadr[0]], model.jnt_dofadr[model.body(f).jntadr[0]]) for f in FINGERS}
+    pad_y = {"left_finger": (0.048, 0.045 - SQUEEZE), "right_finger": (-0.048, -0.045 + SQUEEZE)}  # pad centres
+    for f in FINGERS:
+        data.xfrc_applied[model.body(f).id, 2] = model.body_mass[model.body(f).id] * -model.opt.gravity[2]
+    start = float(data.qpos[2])
+    a, b = PHASES["close"]
+    for _ in range(int(round(PHASES["carry"][1] / model.opt.timestep))):
+        t = data.time + model.opt.timestep
+        close, offset, velocity = _finger_offset(t)
+        for f, (qadr, dadr) in joints.items():
+            y_open, y_closed = pad_y[f]
+            vel = velocity.copy()
+            vel[1] = (y_closed - y_open) / (b - a) if a <= t < b else 0.0
+            pos = np.array([0.0, y_open + close * (y_closed - y_open), 0.05]) + offset
+            data.qpos[qadr:qadr + 7] = np.concatenate([pos - vel * model.opt.timestep, [1.0, 0.0, 0.0, 0.0]])
+            data.qvel[dadr:dadr + 6] = np.concatenate([vel, np.zeros(3)])
+        mujoco.mj_step(model, data)
+    rise, shift = float(data.qpos[2]) - start, float(data.qpos[0])
+    return {"scenario": "native-grip", "mug_rise_mm": 1e3 * rise, "mug_shift_mm": 1e3 * shift,
+            "finger_rise_mm": 1e3 * LIFT[2], "finger_shift_mm": 1e3 * CARRY[0]}
+
+
 SCENARIOS = {
     "mug-rack": Scenario("sim-mug-rack.toml", _mug_on_peg, record=_mug_record),
     "bottle-holder": Scenario("sim-bottle-holder.toml", _bottle_upright, record=_bottle_record),
@@ -362,11 +400,17 @@ SCENARIOS = {
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", choices=sorted(SCENARIOS), required=True, action="append",
+    parser.add_argument("--scene", choices=sorted(SCENARIOS), action="append", default=[],
                         help="scenario to run (repeat for several)")
+    parser.add_argument("--native-grip", action="store_true",
+                        help="also the gripper's motion on MuJoCo's own box contacts (no sdfzoo), for comparison")
     parser.add_argument("--seconds", type=float, default=None, help="simulated time (default: the scene's)")
     parser.add_argument("--out", type=Path, default=Path("out/sim-scenarios"))
     args = parser.parse_args(argv)
+    if not args.scene and not args.native_grip:
+        parser.error("name a --scene (or --native-grip)")
+    if args.native_grip:
+        print(json.dumps(native_grip()), flush=True)
     for name in args.scene:
         result = run(name, args.seconds, args.out)
         summary = {k: result[k] for k in ("scenario", "passed", "steps", "wall_s", "steps_per_s", "max_penetration_mm", "max_contacts")}
