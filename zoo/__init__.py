@@ -7,6 +7,7 @@ training pipeline.
 from __future__ import annotations
 
 from . import errors, geometry, solvers
+from .coherence import CoherentCollider
 from .collision import Contacts, collide
 from .model import Model
 from .neural import NeuralSDF, NeuralShape
@@ -21,6 +22,7 @@ __all__ = [
     "SDF",
     "Box",
     "Capsule",
+    "CoherentCollider",
     "Contacts",
     "Model",
     "NeuralSDF",

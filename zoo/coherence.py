@@ -42,7 +42,6 @@ from dataclasses import asdict, dataclass
 import torch
 from torch.nn import functional as F
 
-from .amortized.polish import POLISH_LINE_STEPS
 from .bounds import LIPSCHITZ, cell_lower_bounds, rounding_slack
 from .collision import (
     _CLUSTER_CULL_MIN,
@@ -62,7 +61,7 @@ from .collision import (
 from .errors import InputError
 from .geometry import bary_to_points, edge_lengths, invert_pose, transform_points, transform_vectors
 from .sdf import Box, Capsule, Sphere, Torus, TransformedSDF, check_sdf
-from .solvers import frank_wolfe, line_search_steps
+from .solvers import frank_wolfe, line_search_step
 from .validation import as_pose, int_at_least, non_negative_float, positive_float
 
 # A persisting candidate is warm-started only while its vertices moved less than this fraction of its
@@ -74,10 +73,18 @@ WARM_REACH = 0.5
 # a learned SDF is only roughly 1-Lipschitz, and a bound carried over a motion inherits the error.
 LEARNED_LIPSCHITZ = 2.0
 DEFAULT_WARM_ITERS = 3
-# Line-search steps from a warm start ("amortized"): the start is the last step's polished answer, and one
-# step lands within 3.4e-6 m of the reference minimum on the demo mug sliding along the rack's peg (two:
-# the same; from scratch, network and two steps: 3.7e-5 m); tests/test_coherence.py.
-WARM_ROUNDS = 1  # Frank-Wolfe iterations from a warm start ("fw", "voxel-fw")
+# Value queries refining each line search of a warm step. One: a second sample lands next to the first once
+# the search has converged, and the interpolation through two nearly equal samples can throw the step far
+# off (zoo.solvers._interpolation_step: on a sphere over a plane, 2 samples ended 2e-5 m above 1 sample).
+WARM_LINE_STEPS = 1
+BOUNDARY = 1e-6
+# A warm answer whose Frank-Wolfe gap (SDF units) exceeds this is solved from scratch too. Warm answers on smooth
+# SDFs stay far below it (sphere on a plane: 2.9e-6 at most; torus: 7.9e-5; the demo mug sliding 0.5 mm per
+# step: 0.02% of them above); inside a box, whose SDF has kinks where a line search stalls, 23% are above.
+RETRY_GAP = 1e-4
+# A warm step that stops on an edge from inside the face takes this many more (an exit point is rarely the
+# edge's minimum).
+WARM_EDGE_STEPS = 1  # barycentric coordinates this small put a warm start on its triangle's boundary  # Frank-Wolfe iterations from a warm start ("fw", "voxel-fw")
 
 
 @dataclass
@@ -93,6 +100,7 @@ class CoherenceStats:
         candidates: triangles that reached the narrow phase (collide's candidates).
         warm: of those, warm-started from their last barycentrics.
         cold: of those, solved from scratch by the method.
+        retried: warm-started ones solved from scratch too (the warm answer's Frank-Wolfe gap exceeded ``RETRY_GAP``).
     """
 
     steps: int = 0
@@ -103,6 +111,7 @@ class CoherenceStats:
     candidates: int = 0
     warm: int = 0
     cold: int = 0
+    retried: int = 0
 
     def add(self, other: CoherenceStats) -> None:
         for key, value in asdict(other).items():
@@ -122,6 +131,119 @@ def motion_lipschitz(sdf) -> float:
     if isinstance(sdf, TransformedSDF):
         return motion_lipschitz(sdf.sdf)
     return LIPSCHITZ if isinstance(sdf, (Sphere, Box, Torus, Capsule)) else LEARNED_LIPSCHITZ
+
+
+def frank_wolfe_gap(tri: torch.Tensor, bary: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
+    """Frank-Wolfe's gap g . p - min_i g . v_i (W,) at the answers ``bary`` (W, 3) on ``tri`` (W, 3, 3) with the
+    gradients ``grads`` (W, 3) there: 0 at a KKT point, and a bound of how far above the minimum the answer
+    is where f is convex."""
+    scores = torch.einsum("wc,wvc->wv", grads, tri)
+    return (scores * bary).sum(dim=-1) - scores.amin(dim=-1)
+
+
+def _values_at(sdf, tri: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+    """``sdf`` at the points ``bary`` (N, 3) of the triangles (N, 3, 3): (N,)."""
+    if not tri.shape[0]:
+        return tri.new_zeros((0,))
+    return torch.as_tensor(sdf(bary_to_points(tri, bary))).reshape(-1).to(tri)
+
+
+def _values(sdf, tri: torch.Tensor) -> torch.Tensor:
+    """``sdf`` at the vertices of the triangles (W, 3, 3): (W, 3)."""
+    return torch.as_tensor(sdf(tri.reshape(-1, 3))).reshape(tri.shape[:2]).to(tri)
+
+
+def _gradients_at(sdf, local: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """Gradients (W, 3) of ``sdf`` at the mesh vertices ``vertices`` (W,) of ``local`` (V, 3), one query per distinct vertex."""
+    distinct, inverse = torch.unique(vertices, return_inverse=True)
+    return _value_and_grad(sdf, local[distinct])[1][inverse]
+
+
+def warm_step(sdf, tri: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Descent from a warm start on each triangle (W, 3, 3): -> (bary (W, 3), f (W,), grad f (W, 3) there).
+
+    A value-and-gradient query at the start, then a line search along the steepest descent inside the
+    triangle (:func:`_tangent_step`: towards a minimum inside the face, along the edge the point lies on, or
+    to the boundary) and a value-and-gradient query at its end (the depth and the normal), kept where lower.
+    An end that stopped on an edge from inside the face takes one more such step, along it (``WARM_EDGE_STEPS``).
+    """
+    bary = start.clone()
+    f, g = _value_and_grad(sdf, bary_to_points(tri, bary))
+    rows = torch.arange(tri.shape[0], device=tri.device)
+    for _ in range(1 + WARM_EDGE_STEPS):
+        end = _tangent_step(sdf, tri[rows], bary[rows], f[rows], g[rows])
+        moved = (end != bary[rows]).any(dim=-1)
+        rows, end = rows[moved], end[moved]
+        if not rows.numel():
+            break
+        f1, g1 = _value_and_grad(sdf, bary_to_points(tri[rows], end))
+        lower = f1 < f[rows]
+        rows, end, f1, g1 = rows[lower], end[lower], f1[lower], g1[lower]
+        # stopped on an edge it was not on: the exit point is rarely the edge's minimum
+        reached = ((end <= BOUNDARY).sum(dim=-1) == 1) & ((bary[rows] <= BOUNDARY).sum(dim=-1) == 0)
+        bary[rows], f[rows], g[rows] = end, f1, g1
+        rows = rows[reached]
+    return bary, f, g
+
+
+def _value_and_grad(sdf, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``sdf``'s values (N,) and gradients (N, 3) at ``points`` (N, 3), in their dtype."""
+    f, g = sdf.value_and_grad(points)
+    return torch.as_tensor(f).reshape(-1).to(points), torch.as_tensor(g).to(points)
+
+
+def _tangent_step(sdf, tri: torch.Tensor, bary: torch.Tensor, f0: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """A line search along the steepest descent of f inside each triangle's plane from ``bary`` (W, 3) (f0 (W,)
+    and g (W, 3) there), as far as the triangle reaches: -> bary (W, 3).
+
+    The direction is -g projected onto the plane; where that would leave the triangle across the edge the
+    point lies on, onto that edge; at a vertex, none. The search is :func:`zoo.solvers.line_search_step` on
+    the segment from the point to where the direction leaves the triangle (one value query there). Coordinates
+    within ``BOUNDARY`` of 0 count as on the boundary (they are set to 0), or rounding would hold a point
+    that lies on an edge to a step of nothing."""
+    bary = torch.where(bary <= BOUNDARY, torch.zeros_like(bary), bary)
+    bary = bary / bary.sum(dim=-1, keepdim=True)
+    direction = _plane_descent(tri, bary, g)  # (W, 3) barycentric, rows sum to 0
+    leaving = direction < 0
+    reach = torch.where(leaving, bary / (-direction).clamp_min(torch.finfo(bary.dtype).tiny), torch.inf).amin(dim=-1)
+    reach = torch.where(torch.isfinite(reach), reach, torch.zeros_like(reach))
+    rows = (reach * direction.abs().amax(dim=-1) > 0).nonzero().squeeze(-1)
+    if not rows.numel():
+        return bary
+    p = bary_to_points(tri[rows], bary[rows])
+    end = bary_to_points(tri[rows], bary[rows] + reach[rows, None] * direction[rows])
+    f_end = torch.as_tensor(sdf(end)).reshape(-1).to(f0)
+    segment = torch.stack([p, end, end], dim=1)  # the search runs from its first corner towards the others
+    first = F.one_hot(torch.zeros_like(rows), 3).to(bary)
+    t = 1 - line_search_step(sdf, segment, first, torch.stack([f0[rows], f_end, f_end], -1), WARM_LINE_STEPS,
+                             start=(f0[rows], g[rows]))[:, 0]
+    out = bary.clone()
+    out[rows] = (bary[rows] + (t * reach[rows]).unsqueeze(-1) * direction[rows]).clamp_min(0)
+    return out / out.sum(dim=-1, keepdim=True)
+
+
+def _plane_descent(tri: torch.Tensor, bary: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """-g projected onto each triangle's plane (W, 3, 3), in barycentric coordinates (W, 3) summing to 0; onto
+    the edge a point on the boundary lies on where it would leave across it; zero at a vertex or on a
+    degenerate triangle."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    a11, a12, a22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    r1, r2 = -(g * e1).sum(-1), -(g * e2).sum(-1)
+    det = a11 * a22 - a12 * a12
+    flat = det > 1e-6 * a11 * a22  # a triangle with area, not a needle
+    det = torch.where(flat, det, torch.ones_like(det))
+    x, y = (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
+    direction = torch.where(flat.unsqueeze(-1), torch.stack([-(x + y), x, y], dim=-1), torch.zeros_like(bary))
+    blocked = (bary <= 0) & (direction < 0)
+    # on one edge (the coordinate i at 0): the descent along that edge, from vertex j = i + 1 to k = i + 2
+    i = blocked.to(torch.int64).argmax(dim=-1)
+    j, k = (i + 1) % 3, (i + 2) % 3
+    rows = torch.arange(tri.shape[0], device=tri.device)
+    edge = tri[rows, k] - tri[rows, j]
+    along = -(g * edge).sum(-1) / (edge * edge).sum(-1).clamp_min(torch.finfo(tri.dtype).tiny)
+    on_edge = F.one_hot(k, 3).to(bary) - F.one_hot(j, 3).to(bary)
+    direction = torch.where((blocked.sum(-1) == 1).unsqueeze(-1), along.unsqueeze(-1) * on_edge, direction)
+    return torch.where((blocked.sum(-1) > 1).unsqueeze(-1), torch.zeros_like(direction), direction)
 
 
 class _CountingSDF:
@@ -146,7 +268,6 @@ class CoherentCollider:
         coherence: False makes every call plain ``zoo.collide`` (nothing is kept).
         warm_start: warm-start persisting candidates from their last barycentrics (see the module's
             docstring); False keeps the skipping only, and the contacts are collide's.
-        warm_iters: Frank-Wolfe iterations of a warm start for "fw" and "voxel-fw" (default 3).
         lipschitz: the bound a vertex's carried bound decays with as it moves (default :func:`motion_lipschitz`).
 
     Call it with the poses of each step: ``contacts = collider(sdf_pose, mesh_pose)`` (4x4 world-from-object,
@@ -155,7 +276,7 @@ class CoherentCollider:
     """
 
     def __init__(self, sdf, mesh, margin: float = 1e-3, method: str = "fw", *, coherence: bool = True,
-                 warm_start: bool = True, warm_iters: int = DEFAULT_WARM_ITERS, iters: int | None = None,
+                 warm_start: bool = True, iters: int | None = None,
                  refine: int = 0, voxel_resolution=256, polish: bool = True, lipschitz: float | None = None):
         check_sdf(sdf)
         self.sdf = sdf
@@ -173,8 +294,7 @@ class CoherentCollider:
         self.polish = bool(polish)
         self.voxel_resolution = voxel_resolution
         self.coherence = bool(coherence)
-        self.warm_start = bool(warm_start) and self.method != "pgd"
-        self.warm_iters = int_at_least(warm_iters, "warm_iters", minimum=1)
+        self.warm_start = bool(warm_start)
         self.lipschitz = motion_lipschitz(sdf) if lipschitz is None else positive_float(lipschitz, "lipschitz")
         self.vertices, self.faces = _mesh_arrays(mesh)
         self.stats = CoherenceStats()
@@ -254,7 +374,10 @@ class CoherentCollider:
                 lower[stale] = torch.as_tensor(self.sdf(local[used[stale]])).reshape(-1).to(lower)
             stats.vertex_queries = int(stale.numel())
             self._anchor_at(used[stale], local, lower[stale], exact=True)
-        candidates = near[open_ & (cell_lower_bounds(tri, lower[corner]) <= self.margin)]
+        # every face from the best bounds known (a face an earlier bound cleared whose vertices were all evaluated
+        # is tested again on their values, as collide does: the same faces for a 1-Lipschitz SDF, and for a
+        # learned one, where a cell bound can exceed a vertex's value, the same as collide's as far as can be)
+        candidates = near[cell_lower_bounds(tri, lower[corner]) <= self.margin]
         stats.candidates = int(candidates.numel())
         fresh = self._exact & (self._anchor == local).all(dim=-1)
         return candidates, torch.where(fresh, self._lower, torch.full_like(self._lower, torch.nan))
@@ -299,20 +422,29 @@ class CoherentCollider:
         solve_sdf = _voxel_of(self.sdf, self.voxel_resolution) if self.method == "voxel-fw" else self.sdf
         with torch.no_grad():
             cold = (~warm).nonzero().squeeze(-1)
-            if cold.numel():
-                bary[cold], depths[cold] = self._cold(solve_sdf, local, faces[cold], tri[cold], f_exact)
             w = warm.nonzero().squeeze(-1)
             if w.numel():
-                bary[w], depths[w], grads[w] = self._warm(solve_sdf, local, faces[w], tri[w], self._bary[candidates[w]],
-                                                          f_exact[faces[w]])
+                fv = f_exact[faces[w]] if solve_sdf is self.sdf else _values(solve_sdf, tri[w])
+                bary[w], depths[w], grads[w] = self._warm(solve_sdf, local, faces[w], tri[w], self._bary[candidates[w]], fv)
+                # a warm answer far from the KKT conditions (a kink of the SDF, a minimum that jumped) is solved
+                # again from scratch too, and the lower answer kept
+                retry = w[frank_wolfe_gap(tri[w], bary[w], grads[w]) > RETRY_GAP]
+                stats.retried = int(retry.numel())
+                cold = torch.cat([cold, retry])
+            if cold.numel():
+                b, d = self._cold(solve_sdf, local, faces[cold], tri[cold], f_exact)
+                d = torch.where(torch.isnan(d), _values_at(solve_sdf, tri[cold], b), d)
+                lower = torch.isnan(depths[cold]) | (d < depths[cold])
+                bary[cold] = torch.where(lower.unsqueeze(-1), b, bary[cold])
+                depths[cold] = torch.where(lower, d, depths[cold])
+                grads[cold] = torch.where(lower.unsqueeze(-1), torch.nan, grads[cold])
             if self.refine:
                 bary = frank_wolfe(solve_sdf, tri, iters=self.refine, init=bary)
                 depths.fill_(torch.nan)
                 grads.fill_(torch.nan)
             unknown = torch.isnan(depths).nonzero().squeeze(-1)
             if unknown.numel():
-                points = bary_to_points(tri[unknown], bary[unknown])
-                depths[unknown] = torch.as_tensor(solve_sdf(points)).reshape(-1).to(depths)
+                depths[unknown] = _values_at(solve_sdf, tri[unknown], bary[unknown])
         return bary, depths, grads
 
     def _warm_rows(self, local: torch.Tensor, candidates: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
@@ -332,36 +464,23 @@ class CoherentCollider:
         return bary, torch.full_like(tri[:, 0, 0], torch.nan)
 
     def _warm(self, solve_sdf, local, faces, tri, start, vertex_values):
-        """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients (NaN
-        where not taken). ``vertex_values`` (W, 3): f at the triangles' vertices, all evaluated this step."""
-        nan = torch.full_like(tri[:, 0, 0], torch.nan)
-        if self.method != "amortized":
-            return frank_wolfe(solve_sdf, tri, iters=self.warm_iters, init=start), nan, nan.unsqueeze(-1).expand(-1, 3)
+        """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients at them
+        (NaN where not taken). ``vertex_values`` (W, 3): ``solve_sdf`` at the triangles' vertices."""
         f_low, lowest = vertex_values.min(dim=-1)
-        g_low = self._gradients_at(local, faces.gather(1, lowest.unsqueeze(1)).squeeze(1))
+        g_low = _gradients_at(solve_sdf, local, faces.gather(1, lowest.unsqueeze(1)).squeeze(1))
         low_bary = F.one_hot(lowest, 3).to(tri)
         # the vertex test, as solve_mesh's: a lowest vertex that is a KKT point is the answer
         scores = torch.einsum("wc,wvc->wv", g_low, tri)
         settled = scores.amin(dim=-1) >= scores.gather(1, lowest.unsqueeze(1)).squeeze(1)
         bary, depths, grads = low_bary.clone(), f_low.clone(), g_low.clone()
         rows = (~settled).nonzero().squeeze(-1)
-        if rows.numel():  # the others: line-search steps from the last answer, then the lower of it and the vertex
-            polished = line_search_steps(solve_sdf, tri[rows], start[rows], vertex_values[rows], WARM_ROUNDS,
-                                         line_steps=POLISH_LINE_STEPS, fallback=(low_bary[rows], f_low[rows], g_low[rows]))
-            f, g = solve_sdf.value_and_grad(bary_to_points(tri[rows], polished))
-            f, g = torch.as_tensor(f).reshape(-1).to(tri), torch.as_tensor(g).to(tri)
+        if rows.numel():  # the others: the best of the last answer and one step from it each way, or the vertex
+            moved, f, g = warm_step(solve_sdf, tri[rows], start[rows])
             better = f < f_low[rows]
-            bary[rows] = torch.where(better.unsqueeze(-1), polished, low_bary[rows])
+            bary[rows] = torch.where(better.unsqueeze(-1), moved, low_bary[rows])
             depths[rows] = torch.where(better, f, f_low[rows])
             grads[rows] = torch.where(better.unsqueeze(-1), g, g_low[rows])
         return bary, depths, grads
-
-    def _gradients_at(self, local: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
-        """Gradients (W, 3) of the SDF at the mesh vertices ``vertices`` (W,) (present positions), one query per
-        distinct vertex."""
-        distinct, inverse = torch.unique(vertices, return_inverse=True)
-        _, g = self.sdf.value_and_grad(local[distinct])
-        return torch.as_tensor(g).to(local)[inverse]
 
     def _normals(self, points: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
         """Unit normals (K, 3) at the contacts (K, 3): the gradients a warm start took, queried elsewhere."""
