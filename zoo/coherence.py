@@ -5,33 +5,30 @@ between steps, so :class:`CoherentCollider` keeps, for one (SDF, mesh) pair, wha
 all in the SDF's frame (where the SDF is queried):
 
 * per mesh vertex, a lower bound of f at an anchor point (f itself where the vertex was evaluated,
-  else a cell bound of the broad phase). The SDF is 1-Lipschitz (:data:`zoo.bounds.LIPSCHITZ`), so at
-  the vertex's new position p, f(p) >= bound - |p - anchor|: a vertex that moved by delta loses delta
-  of its slack, whatever the motion. A triangle's lower bound then follows from its vertices' bounds
-  (:func:`zoo.bounds.cell_lower_bounds`, valid for any lower bounds at the vertices), and a triangle
-  proven to stay above the margin is skipped with no query. Anchors stay put until a vertex is
-  evaluated again, so a triangle cleared with a lot of slack is skipped for many steps, until its
-  vertices' displacement since their anchor eats the slack. Rounding slack is subtracted as in
-  :mod:`zoo.collision`;
+  else a cell bound of the broad phase). With L the SDF's Lipschitz bound (:func:`motion_lipschitz`),
+  at the vertex's new position p, f(p) >= bound - L |p - anchor|, whatever the motion. A triangle's
+  lower bound then follows from its vertices' bounds (:func:`zoo.bounds.cell_lower_bounds`, valid for
+  any lower bounds at the vertices), and a triangle proven to stay above the margin is skipped with no
+  query. Anchors stay put until a vertex is evaluated again, so a triangle cleared with a lot of slack
+  is skipped for many steps, until its vertices' displacement since their anchor eats the slack.
+  Rounding slack is subtracted as in :mod:`zoo.collision`;
 * the triangles that remain get fresh values at their vertices (cell bounds first when there are
-  many, as in collide) and the same vertex cull as collide: the candidates are exactly collide's
-  (every bound used is a lower bound of the vertex value collide's own cull reads, and the cull is
-  monotone in the values);
+  many, as in collide), and every face is tested on the best bounds known: for a 1-Lipschitz SDF the
+  candidates are exactly collide's (every bound used is a lower bound of the vertex value collide's own
+  cull reads, and the cull is monotone in the values);
 * per triangle, the barycentrics of its last answer. A candidate that was a candidate at the last
-  step too, and whose vertices moved less than half its longest edge since, is warm-started there
-  (``warm_start``): ``"amortized"`` takes ``POLISH_ROUNDS`` line-search steps from it
-  (:func:`zoo.solvers.line_search_steps`) and keeps the lower of that and its lowest vertex, instead
-  of the vertex test, the network and the polish; a start that is already a KKT point costs one
-  value-and-gradient query, which gives its depth and its normal too. ``"fw"`` and ``"voxel-fw"``
-  take ``warm_iters`` Frank-Wolfe iterations warm-started there (:func:`zoo.solvers.frank_wolfe`,
-  which never returns a point worse than its start) instead of ``iters`` from the centroid.
-  ``"pgd"`` has no warm start (PhysX's rule starts from its own point): only the skipping applies.
-  New candidates take collide's own narrow phase.
+  step too, and whose vertices moved less than ``WARM_REACH`` of its longest edge since, is
+  warm-started there (``warm_start``), whatever the method: the vertex test on its lowest vertex
+  (a KKT vertex is the answer, with its gradient as the normal), else :func:`warm_step` (a line search
+  along the steepest descent inside the triangle) and the lower of that and the lowest vertex. Where
+  the warm answer's Frank-Wolfe gap exceeds ``RETRY_GAP`` the method solves the row from scratch too,
+  and the lower answer is kept. New candidates take collide's own narrow phase.
 
 The contacts have collide's fields and meaning (world frame, depths are signed distances, triangles
 index the mesh's faces, rows ordered by triangle). Without warm starts they are collide's; with
-them, a depth can only differ by the solvers' own error (tests/test_coherence.py holds both along
-trajectories; docs/coherence.md measures the savings). ``coherence=False`` calls ``zoo.collide``.
+them, a depth only differs by the solvers' own error, and is the lower one (tests/test_coherence.py
+holds both along trajectories; docs/coherence.md measures the savings). ``coherence=False`` calls
+``zoo.collide``.
 """
 
 from __future__ import annotations
@@ -72,19 +69,18 @@ WARM_REACH = 0.5
 # |grad f| <= 1.68 at 99.9% of points within 2 mm of its surface (2.4 at most; 2.1 and 3.4 within 3 cm):
 # a learned SDF is only roughly 1-Lipschitz, and a bound carried over a motion inherits the error.
 LEARNED_LIPSCHITZ = 2.0
-DEFAULT_WARM_ITERS = 3
 # Value queries refining each line search of a warm step. One: a second sample lands next to the first once
 # the search has converged, and the interpolation through two nearly equal samples can throw the step far
 # off (zoo.solvers._interpolation_step: on a sphere over a plane, 2 samples ended 2e-5 m above 1 sample).
 WARM_LINE_STEPS = 1
-BOUNDARY = 1e-6
+BOUNDARY = 1e-6  # barycentric coordinates this small put a warm start on its triangle's boundary
+# A warm step that stops on an edge from inside the face takes this many more (an exit point is rarely the
+# edge's minimum).
+WARM_EDGE_STEPS = 1
 # A warm answer whose Frank-Wolfe gap (SDF units) exceeds this is solved from scratch too. Warm answers on smooth
 # SDFs stay far below it (sphere on a plane: 2.9e-6 at most; torus: 7.9e-5; the demo mug sliding 0.5 mm per
 # step: 0.02% of them above); inside a box, whose SDF has kinks where a line search stalls, 23% are above.
 RETRY_GAP = 1e-4
-# A warm step that stops on an edge from inside the face takes this many more (an exit point is rarely the
-# edge's minimum).
-WARM_EDGE_STEPS = 1  # barycentric coordinates this small put a warm start on its triangle's boundary  # Frank-Wolfe iterations from a warm start ("fw", "voxel-fw")
 
 
 @dataclass
