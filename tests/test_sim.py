@@ -186,3 +186,17 @@ def test_demo_scene_loads_on_bundled_data():
     assert "mugs@" in sim.labels["mug"]
     sim.step(2)
     assert np.isfinite(sim.pose("mug")).all()
+
+
+def test_frictionless_contacts_hold_a_body_up_without_a_warning():
+    """friction = 0 gives frictionless (1-dimensional) contacts: the box rests on the plane, finite, unwarned."""
+    sim = zoo.sim.Simulation(dt=sim_check.DT, method="fw", friction=0.0)
+    pose = np.eye(4)
+    pose[2, 3] = sim_check.HALF
+    sim.add_body("box", sdf=zoo.Box(half_extents=(sim_check.HALF,) * 3), mass=1.0, pose=pose)
+    sim.add_body("ground", mesh=sim_check.two_triangle_plane(), joint="fixed")
+    sim.run(0.3)
+    assert np.isfinite(sim.pose("box")).all()
+    assert abs(sim.pose("box")[2, 3] - sim_check.HALF) < 1e-3
+    assert abs(sim.normal_force("box") - 9.81) < 0.05 * 9.81
+    assert not sim.warnings

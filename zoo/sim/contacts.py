@@ -276,7 +276,7 @@ def add_contacts(model, data, rows: ContactRows, friction: float, solref, solimp
     if k == 0:
         return 0
     template = mujoco.MjContact()
-    template.dim = 3
+    template.dim = 3 if friction > 0 else 1  # a 3-dim cone with zero friction makes MuJoCo's acceleration non-finite
     template.includemargin = 0.0  # a positive margin makes bodies hover at it
     template.friction = [friction, friction, 0.005, 1e-4, 1e-4]
     template.mu = friction
