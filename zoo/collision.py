@@ -43,7 +43,7 @@ import torch
 
 from .bounds import cell_lower_bounds, rounding_slack
 from .errors import InputError
-from .geometry import bary_to_points, invert_pose, transform_points, transform_vectors, unique_rows
+from .geometry import bary_to_points, faces_touching_box, invert_pose, transform_points, transform_vectors, unique_rows
 from .sdf import check_sdf
 from .validation import as_faces, as_points, as_pose, as_triangles, int_at_least, mesh_pair, non_negative_float
 
@@ -125,20 +125,10 @@ def _overlaps_bounds(sdf, triangles: torch.Tensor, margin: float) -> torch.Tenso
 
 
 def _faces_near_bounds(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float) -> torch.Tensor:
-    """Indices (N,) of the faces whose AABB touches the SDF's bounds grown by ``margin``.
-
-    The same test as :func:`_overlaps_bounds` without building the (F, 3, 3) triangles: each
-    vertex (V, 3) gets six bits (below the grown box on x, y, z; above it on x, y, z), and a
-    face's box misses the grown box exactly when its three vertices share a bit.
-    """
+    """Indices (N,) of the faces whose AABB touches the SDF's bounds grown by ``margin``
+    (:func:`_overlaps_bounds`'s test without building the (F, 3, 3) triangles)."""
     lo, hi = (torch.as_tensor(b).to(vertices).reshape(3) for b in sdf.bounds)
-    weights = torch.tensor([1, 2, 4], dtype=torch.uint8, device=vertices.device)
-    below = ((vertices < lo - margin).to(torch.uint8) * weights).sum(dim=-1, dtype=torch.uint8)
-    above = ((vertices > hi + margin).to(torch.uint8) * weights).sum(dim=-1, dtype=torch.uint8)
-    code = below | (above << 3)  # (V,) uint8
-    per_face = code[faces]  # (F, 3)
-    shared = per_face[:, 0] & per_face[:, 1] & per_face[:, 2]
-    return (shared == 0).nonzero().squeeze(-1)
+    return faces_touching_box(vertices, faces, lo - margin, hi + margin)
 
 
 # From this many distinct vertices on, the broad phase first bounds f at every vertex by one query per

@@ -88,6 +88,22 @@ def transform_vectors(pose: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor
     return vectors @ pose[:3, :3].T
 
 
+def faces_touching_box(vertices: torch.Tensor, faces: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Indices (N,) of the faces (F, 3) whose AABB touches the box [lo, hi] ((3,) each).
+
+    Without building the (F, 3, 3) triangles: each vertex (V, 3) gets six bits (below the box on
+    x, y, z; above it on x, y, z), and a face's box misses the box exactly when its three vertices
+    share a bit.
+    """
+    weights = torch.tensor([1, 2, 4], dtype=torch.uint8, device=vertices.device)
+    below = ((vertices < lo).to(torch.uint8) * weights).sum(dim=-1, dtype=torch.uint8)
+    above = ((vertices > hi).to(torch.uint8) * weights).sum(dim=-1, dtype=torch.uint8)
+    code = below | (above << 3)  # (V,) uint8
+    per_face = code[faces]  # (F, 3)
+    shared = per_face[:, 0] & per_face[:, 1] & per_face[:, 2]
+    return (shared == 0).nonzero().squeeze(-1)
+
+
 def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     """Inverse of a rigid 4x4 transform."""
     inv = torch.eye(4, dtype=pose.dtype, device=pose.device)

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..geometry import faces_touching_box
+
 PATCH_COS = math.cos(math.radians(20.0))  # faces within 20 degrees of a patch's deepest contact's face join it
 FLAT_COS = math.cos(math.radians(5.0))  # a patch's extra points: SDF normals within 5 degrees of its deepest's
 MAX_PER_PATCH = 4
@@ -63,16 +65,19 @@ def refine_near(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.
     Returns:
         vertices (V', 3), faces (F', 3), origin (F',) the input face each output face comes from.
     """
-    tri = vertices[faces]  # (F, 3, 3)
-    near = np.nonzero(((tri.max(axis=1) >= lo) & (tri.min(axis=1) <= hi)).all(axis=1))[0]
-    edge = np.linalg.norm(tri[near] - np.roll(tri[near], 1, axis=1), axis=-1).max(axis=1)
-    small, large = near[edge <= max_edge], near[edge > max_edge]
+    box = [torch.as_tensor(np.asarray(b, dtype=vertices.dtype)) for b in (lo, hi)]
+    near = faces_touching_box(torch.as_tensor(vertices), torch.as_tensor(faces, dtype=torch.long), *box).numpy()
+    tri = vertices[faces[near]]  # (N, 3, 3): only the faces near the box (a step's hot path on a large mesh)
+    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(axis=1)
+    small = near[edge <= max_edge]
+    large = np.nonzero(edge > max_edge)[0]  # positions in ``near``
     if len(large) == 0:
         return vertices, faces[small], small
     parts_v, parts_f, parts_o = [vertices], [faces[small]], [small]
     offset = len(vertices)
-    for index in large:  # few: the faces larger than the SDF that reach its box
-        polygon = _clip_to_box(tri[index], lo, hi)
+    for position in large:  # few: the faces larger than the SDF that reach its box
+        index = near[position]
+        polygon = _clip_to_box(tri[position], lo, hi)
         if len(polygon) < 3:
             continue
         v, f = _subdivide(polygon, max_edge)
