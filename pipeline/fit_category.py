@@ -74,7 +74,6 @@ PRESETS = Presets(
     default=Preset("default", SampleConfig(n_points=100_000), fit_preset("default"),
                    EvalConfig(n_near=10_000, n_uniform=10_000), steps_per_shape=37.1, min_steps=600),
 )
-get_preset = PRESETS.lookup
 
 
 # --------------------------------------------------------------------------- the run
@@ -271,7 +270,7 @@ def fit_category(category: str, data_dir: str | os.PathLike | None = None, prese
     from .categories import load_category, resolve_data_dir
 
     cat = load_category(category)
-    p = get_preset(preset)
+    p = PRESETS.lookup(preset)
     run = FitRun(cat, resolve_data_dir(data_dir, cat), Path(work_dir or Path("runs") / cat.name),
                  Path(out_dir or Path("out") / cat.name), p, device=device, progress=progress, log=log)
     for name, fn in STAGES:

@@ -25,3 +25,7 @@ class Presets(dict):
         if name not in self:
             raise InputError(f"unknown {self.what} preset {name!r}; choose one of {', '.join(sorted(self))}")
         return replace(self[name], **overrides) if overrides else self[name]
+
+    def lookup_or_default(self, name: str):
+        """The preset ``name`` if this stage has one, else ``default`` (a run's preset that only some stages name)."""
+        return self[name] if name in self else self["default"]

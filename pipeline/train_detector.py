@@ -122,7 +122,7 @@ def ablation_configs(base: TrainConfig) -> dict[str, TrainConfig]:
 def train_ablations(data: TrainingData, base: TrainConfig, out_dir, progress: bool = True, log=print,
                     device=None) -> dict[str, Path]:
     """Train every :func:`ablation_configs` variant of ``base`` on ``data`` into ``OUT/<variant>``
-    (each resumable on its own); -> {variant: directory}, for ``bench_detector --ablations``."""
+    (each resumable on its own); -> {variant: directory}, for ``python -m benches.detector --ablations``."""
     out = {}
     for name, config in ablation_configs(base).items():
         log(f"ablation {name}")
@@ -470,7 +470,7 @@ def stage_train_detector(run) -> bool:
     """`zoo fit-category` stage: train the detector on the stage sample-triangles' dataset; sets run.detector."""
     from .stages import Stage, run_stage
 
-    config = preset(run.preset.name if run.preset.name in PRESETS else "default")
+    config = PRESETS.lookup_or_default(run.preset.name)
     out = run.work_dir / "detector" / run.preset.name
     stage = Stage("train-detector", {"triangles": run.triangles_file, "fit": run.fit_file}, {"train": config.to_dict()},
                   {"weights": out / WEIGHTS, "config": out / CONFIG}, code=(__name__,))

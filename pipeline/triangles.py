@@ -333,7 +333,7 @@ def stage_sample_triangles(run) -> bool:
     """`zoo fit-category` stage: the labelled triangles of every fitted train shape (cached by the fit's hash)."""
     from .stages import Stage, run_stage
 
-    config = preset(run.preset.name if run.preset.name in PRESETS else "default")
+    config = PRESETS.lookup_or_default(run.preset.name)
     out = run.work_dir / "triangles" / f"{run.preset.name}.h5"
     stage = Stage("sample-triangles", {"fit": run.fit_file}, {"triangles": config.to_dict(), "stems": run.stems},
                   {"triangles": out}, code=(__name__,))

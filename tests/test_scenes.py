@@ -146,12 +146,12 @@ def test_the_demo_scene_file_holds_the_pose_hanging_pose_computes():
 
 
 def test_a_bare_scene_name_is_found_in_the_installed_packages_data(tmp_path, monkeypatch):
-    import zoo.scenes
+    import zoo.resources
 
     package = tmp_path / "site-packages" / "zoo"
     (package / "data" / "scenes").mkdir(parents=True)
     (package / "data" / "scenes" / "ball.toml").write_text('name = "ball"\n')
-    monkeypatch.setattr(zoo.scenes.zoo, "__file__", str(package / "__init__.py"))  # as a wheel installs it
+    monkeypatch.setattr(zoo.resources, "__file__", str(package / "resources.py"))  # as a wheel installs it
     monkeypatch.chdir(tmp_path)
     assert resolve_scene("ball") == package / "data" / "scenes" / "ball.toml"
     assert resolve_scene("scenes/ball.toml") == package / "data" / "scenes" / "ball.toml"

@@ -41,6 +41,7 @@ from zoo.errors import DataError, InputError
 from zoo.files import atomic_write_text
 from zoo.meshes import load_mesh
 from zoo.registry import toml_parser
+from zoo.resources import bundled
 
 tomllib = toml_parser()
 
@@ -84,10 +85,9 @@ def pose_matrix(spec: dict | list | None) -> np.ndarray:
 
 
 def scene_folders() -> list[Path]:
-    """Where bundled scene files live, in the order :func:`resolve_scene` looks: the project's
-    top-level ``scenes/`` (a clone or an editable install), then the installed wheel's copy."""
-    package = Path(zoo.__file__).resolve().parent
-    return [package.parent / "scenes", package / "data" / "scenes"]
+    """Where bundled scene files live (:func:`zoo.resources.bundled`): the project's top-level
+    ``scenes/`` in a clone or an editable install, else the installed wheel's copy."""
+    return [bundled("scenes")]
 
 
 def resolve_scene(name: str | os.PathLike) -> Path:

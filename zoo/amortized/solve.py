@@ -11,7 +11,7 @@ import torch
 from ..bounds import cell_lower_bounds
 from ..detector import AmortizedDetector
 from ..errors import InputError
-from ..geometry import edge_lengths, unique_rows
+from ..geometry import edge_lengths, transform_points, unique_rows
 from ..validation import as_triangles
 from . import batching
 from .best import BestSoFar
@@ -241,8 +241,7 @@ def to_normalised_frame(shape, triangles: torch.Tensor) -> torch.Tensor:
     similarity = getattr(shape, "similarity", None)
     if similarity is None:
         return triangles
-    m = torch.as_tensor(similarity.matrix, dtype=triangles.dtype, device=triangles.device)  # (4, 4)
-    return triangles @ m[:3, :3].T + m[:3, 3]
+    return transform_points(torch.as_tensor(similarity.matrix, dtype=triangles.dtype, device=triangles.device), triangles)
 
 
 def _scale(shape) -> float:
