@@ -78,7 +78,7 @@ from zoo.collision import DEFAULT_ITERS, candidate_triangles
 from zoo.errors import InputError, ModelNotFoundError
 from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
-from zoo.scenes import Scene, load_scene, scene_from_dict
+from zoo.scenes import Scene, load_scene, read_scene, scene_from_dict
 from zoo.voxel import VoxelSDF
 
 from .solvers import machine_info, steady_allocator
@@ -146,10 +146,6 @@ def scene_paths(names=None) -> list[Path]:
 def load_bench_scene(path: str | os.PathLike, standin_dir: str | os.PathLike = "out/bench/standins",
                      allow_standin: bool = True) -> BenchScene:
     """Load a scene; where its model is not packaged yet, put a stand-in SDF in (see the module doc)."""
-    from zoo.registry import toml_parser
-
-    tomllib = toml_parser()
-
     path = Path(path)
     note = ""
     try:
@@ -158,7 +154,7 @@ def load_bench_scene(path: str | os.PathLike, standin_dir: str | os.PathLike = "
         note = str(exc)
         if not allow_standin:
             raise
-        spec = tomllib.loads(path.read_text())
+        spec, _ = read_scene(path)
         sdf_spec = spec["sdf"]
         no_model = {**spec, "sdf": {"analytic": "sphere", "pose": sdf_spec.get("pose")}}
         scene = scene_from_dict(no_model, base_dir=path.parent)  # everything but the SDF

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from zoo.files import atomic_write_text
+
 DT = 0.002
 SETTLE_S = 0.6  # a 1 kg body on solref (0.02, 1) settles within 0.2 s
 AVERAGE_S = 0.1  # resting values are means over the last 0.1 s
@@ -65,13 +67,13 @@ def box_inertia(half=(HALF, HALF, HALF)) -> list[float]:
 
 
 def native_run(shape: str, xy=(0.0, 0.0), z0: float = 0.0, velocity=(0.0, 0.0, 0.0), seconds: float = SETTLE_S,
-               half=(HALF, HALF, HALF)) -> dict:
+               half=(HALF, HALF, HALF), dt: float = DT) -> dict:
     """The body on MuJoCo's own plane: trajectory of heights and x, and the normal forces."""
     import mujoco
 
     inertia = sphere_inertia() if shape == "sphere" else box_inertia(half)
     geom = f'type="sphere" size="{RADIUS}"' if shape == "sphere" else f'type="box" size="{" ".join(map(str, half))}"'
-    xml = f"""<mujoco><option timestep="{DT}" integrator="implicitfast"/><worldbody>
+    xml = f"""<mujoco><option timestep="{dt}" integrator="implicitfast"/><worldbody>
 <geom type="plane" size="10 10 1" friction="1 0.005 0.0001"/>
 <body pos="{xy[0]} {xy[1]} {z0}"><freejoint/><inertial pos="0 0 0" mass="{MASS}" diaginertia="{' '.join(map(str, inertia))}"/>
 <geom {geom} friction="1 0.005 0.0001"/></body></worldbody></mujoco>"""
@@ -80,7 +82,7 @@ def native_run(shape: str, xy=(0.0, 0.0), z0: float = 0.0, velocity=(0.0, 0.0, 0
     d.qvel[:3] = velocity
     heights, xs, forces = [], [], []
     force = np.zeros(6)
-    for _ in range(int(round(seconds / DT))):
+    for _ in range(int(round(seconds / dt))):
         mujoco.mj_step(m, d)
         heights.append(float(d.qpos[2]))
         xs.append(float(d.qpos[0]))
@@ -217,7 +219,7 @@ def main(argv=None) -> int:
                   f"{r['raw_mm']:.3f} ({r['raw_contacts']}) | {r['unrefined_raw_mm']:.3f} ({r['unrefined_raw_contacts']}) |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1))
+    atomic_write_text(out, json.dumps(report, indent=1))
     print(table(report))
     print(f"{'all within tolerance' if report['ok'] else 'SOME CASES FAIL'}; written to {out}")
     return 0 if report["ok"] else 1

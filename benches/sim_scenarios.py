@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from zoo.files import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
 TOLERANCE = 0.05  # gear ratio and advance per turn: within 5% of the teeth ratio and the pitch
@@ -100,7 +102,7 @@ def run(name: str, seconds: float | None = None, out: Path | None = None) -> dic
     scenario = SCENARIOS[name]
     path = SCENES / scenario.scene
     sim = zoo.sim.load_scene(path)
-    sim.pose(next(iter(sim.bodies)))  # builds the MuJoCo model: joint addresses, initial kinematics
+    sim.build()  # joint addresses, initial kinematics
     seconds = sim.seconds if seconds is None else seconds
     extra = scenario.prepare(sim) or {}
     trace = [{"time": sim.time, "contacts": 0, "penetration_mm": 0.0, **scenario.record(sim)}]
@@ -127,7 +129,7 @@ def run(name: str, seconds: float | None = None, out: Path | None = None) -> dic
     result["passed"] = bool(result["check"]["passed"] and result["finite"])
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        (out / f"{name}.json").write_text(json.dumps({**result, "trace": trace}, indent=1, default=float))
+        atomic_write_text(out / f"{name}.json", json.dumps({**result, "trace": trace}, indent=1, default=float))
     return result
 
 

@@ -142,6 +142,8 @@ def test_bad_arguments_raise_typed_errors():
         sim.add_body("a", sdf=zoo.Sphere(radius=0.1), joint="ball")
     with pytest.raises(InputError, match="sdf, a mesh"):
         sim.add_body("b")
+    with pytest.raises(InputError, match="rotation"):
+        sim.add_body("c", sdf=zoo.Sphere(radius=0.1), pose=np.diag([2.0, 1.0, 1.0, 1.0]))  # not rigid
     with pytest.raises(InputError, match="no body"):
         sim.pose("missing")
 

@@ -107,14 +107,19 @@ def resolve_scene(name: str | os.PathLike) -> Path:
                     f"{', '.join(str(f) for f in scene_folders())}); give a path or one of: {', '.join(bundled) or 'none'}")
 
 
+def read_scene(path: str | os.PathLike) -> tuple[dict, Path]:
+    """(the scene's table, its file): a path or a bundled scene's name (:func:`resolve_scene`), TOML."""
+    path = resolve_scene(path)
+    try:
+        return tomllib.loads(path.read_text()), path
+    except tomllib.TOMLDecodeError as exc:
+        raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read a scene file (a path, or a bundled scene's name: :func:`resolve_scene`) and build its SDF
     and mesh (loading only the model it names)."""
-    path = resolve_scene(path)
-    try:
-        spec = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
+    spec, path = read_scene(path)
     return scene_from_dict(spec, base_dir=path.parent)
 
 

@@ -247,10 +247,9 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.concatenate([normals, t1, t2], axis=1)
 
 
-def contact_rows(contacts, keep: np.ndarray, geoms: tuple[int, int]) -> ContactRows:
-    """MuJoCo rows of ``contacts`` (a zoo.Contacts in the world frame) at the indices ``keep``."""
-    points, depths, normals = as_numpy(contacts)
-    points, depths, normals = points[keep], depths[keep], normals[keep]
+def contact_rows(arrays: tuple[np.ndarray, np.ndarray, np.ndarray], keep: np.ndarray, geoms: tuple[int, int]) -> ContactRows:
+    """MuJoCo rows of contacts given as :func:`as_numpy`'s (points, depths, normals), world frame, at the indices ``keep``."""
+    points, depths, normals = (a[keep] for a in arrays)
     # the mesh point lies at depth d along the SDF's normal from the SDF's surface: the surface is at p - d n
     pos = points - 0.5 * depths[:, None] * normals
     geom = np.tile(np.asarray(geoms, dtype=np.int32), (len(keep), 1))

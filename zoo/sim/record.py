@@ -9,9 +9,7 @@ and ``<name>.gif`` (:mod:`zoo.sim.animation`). h5py, matplotlib and Pillow are i
 
 from __future__ import annotations
 
-import hashlib
 import json
-import math
 import os
 import time
 from dataclasses import asdict
@@ -19,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import atomic_path, atomic_write_text
+from ..files import atomic_path, atomic_write_text, sha256_file
 
 
 class Recorder:
@@ -128,15 +126,8 @@ class Recorder:
 
 
 def _jsonable(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    return str(value)
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    """json.dumps' fallback: numpy scalars as numbers, anything else as its text."""
+    return value.item() if isinstance(value, (np.floating, np.integer)) else str(value)
 
 
 def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
@@ -147,7 +138,7 @@ def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
 
     return {
         "zoo_version": zoo.__version__, "mujoco_version": mujoco.__version__,
-        "scene": str(scene_path) if scene_path else "", "scene_sha256": file_sha256(scene_path) if scene_path else "",
+        "scene": str(scene_path) if scene_path else "", "scene_sha256": sha256_file(scene_path) if scene_path else "",
         "bodies": json.dumps(getattr(sim, "labels", {})), "method": sim.method, "dt": sim.dt, "margin": sim.margin,
         "friction": sim.friction, "solref": json.dumps(list(sim.solref)), "integrator": sim.integrator,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

@@ -41,24 +41,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError, InputError
-from ..registry import toml_parser
-from ..scenes import _build_mesh, _build_sdf, pose_matrix, resolve_scene
+from ..errors import InputError
+from ..scenes import _build_mesh, _build_sdf, pose_matrix, read_scene
 from .simulation import Simulation
 
 SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "sdf_mass", "drop", "reduce", "refine"}
 SCENE_ONLY = ("seconds", "drop", "sdf_mass")  # [sim] keys that are not Simulation's arguments
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
-
-
-def read_scene(path: str | os.PathLike) -> tuple[dict, Path]:
-    """(the scene's table, its file): a path or a bundled scene's name (``zoo.scenes.resolve_scene``), TOML."""
-    path = resolve_scene(path)
-    tomllib = toml_parser()
-    try:
-        return tomllib.loads(path.read_text()), path
-    except tomllib.TOMLDecodeError as exc:
-        raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
 
 
 def load_scene(path: str | os.PathLike, **overrides) -> Simulation:

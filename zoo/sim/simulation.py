@@ -26,6 +26,8 @@ import torch
 import zoo
 
 from ..errors import InputError
+from ..geometry import invert_pose
+from ..validation import as_pose
 from .contacts import (
     REFINE_CELLS,
     add_contacts,
@@ -137,9 +139,7 @@ class Simulation:
         if sdf is not None:
             zoo.sdf.check_sdf(sdf)
         arrays = mesh_arrays(mesh) if mesh is not None else None
-        pose = np.eye(4) if pose is None else np.asarray(torch.as_tensor(pose).detach().cpu(), dtype=np.float64)
-        if pose.shape != (4, 4) or not np.isfinite(pose).all():
-            raise InputError(f"body {name!r}: pose must be a finite 4x4 world-from-body matrix")
+        pose = np.eye(4) if pose is None else as_pose(pose, torch.float64, f"body {name!r} pose").numpy()
         body = Body(name=name, sdf=sdf, mesh=arrays, pose=pose, joint=joint, axis=np.asarray(axis, dtype=np.float64),
                     anchor=np.asarray(anchor, dtype=np.float64), velocity=velocity, drive=drive)
         if joint != "fixed":
@@ -157,6 +157,11 @@ class Simulation:
             return sdf_mass_properties(body.sdf, mass, density)
         return mesh_mass_properties(*body.mesh, mass=mass, density=density)
 
+    def build(self) -> None:
+        """Build the MuJoCo model now (the first step does it otherwise); bodies can no longer be added."""
+        if self.model is None:
+            self._build()
+
     def _build(self):
         import mujoco
 
@@ -166,6 +171,7 @@ class Simulation:
         self._warnings_seen = np.array([w.number for w in self.data.warning])
         self._pairs = _pairs(list(self.bodies.values()))
         self._sdf_boxes = {b.name: _bounds(b.sdf) for b in self.bodies.values() if b.sdf is not None}
+        self._reaches = {name: float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)))) for name, (lo, hi) in self._sdf_boxes.items()}
         # a body pushed deeper than this into a mesh is reported: past its middle a thin mesh's contacts push it through
         self._tunnel_depth = TUNNEL_FRACTION * min((float((hi - lo).min()) for lo, hi in self._sdf_boxes.values()), default=math.inf)
         self._mesh_boxes = {b.name: (b.mesh[0].min(axis=0), b.mesh[0].max(axis=0)) for b in self.bodies.values() if b.mesh is not None}
@@ -175,8 +181,7 @@ class Simulation:
 
     def step(self, n: int = 1) -> None:
         """Advance ``n`` steps of ``dt``."""
-        if self.model is None:
-            self._build()
+        self.build()
         for _ in range(int(n)):
             self._step_once()
 
@@ -235,14 +240,14 @@ class Simulation:
             found = self._collide_pair(sdf_body, mesh_body, margin)
             if found is None or len(found[0]) == 0:
                 continue
-            contacts, keep = found
+            contacts, keep, arrays = found
             raw += len(contacts)
-            rows.append(contact_rows(contacts, keep, (sdf_body.geom_id, mesh_body.geom_id)))
+            rows.append(contact_rows(arrays, keep, (sdf_body.geom_id, mesh_body.geom_id)))
             collected.append(_select(contacts, keep))
         return rows, raw, used, speculative, collected
 
     def _collide_pair(self, sdf_body: Body, mesh_body: Body, margin: float):
-        """(zoo.Contacts in the world frame, kept indices) of one pair, or None when their boxes miss."""
+        """(zoo.Contacts in the world frame, kept indices, its :func:`as_numpy` arrays) of one pair, or None when their boxes miss."""
         t_sdf, t_mesh = self.pose(sdf_body.name), self.pose(mesh_body.name)
         lo, hi = self._sdf_boxes[sdf_body.name]
         world_lo, world_hi = _world_box(t_sdf, lo - margin, hi + margin)
@@ -251,7 +256,7 @@ class Simulation:
             return None
         vertices, faces = mesh_body.mesh
         # the mesh in the SDF's frame, cut to the SDF's box and with large faces refined there
-        sdf_from_mesh = np.linalg.inv(t_sdf) @ t_mesh
+        sdf_from_mesh = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_mesh  # rigid: a transpose, not a general inverse
         local = vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
         max_edge = float(np.median(hi - lo)) / REFINE_CELLS if self.refine else math.inf  # a thin plate: its side, not its thickness
         local, faces, origin = refine_near(local, faces, lo - margin, hi + margin, max_edge)
@@ -269,7 +274,7 @@ class Simulation:
         if self.reduce and len(keep):
             merge = MERGE_FRACTION * float((hi - lo).min())
             keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
-        return contacts, keep
+        return contacts, keep, (points, depths, normals)
 
     def _method_for(self, sdf) -> str:
         if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
@@ -277,12 +282,16 @@ class Simulation:
         return self.method
 
     def _closing_distance(self, a: Body, b: Body) -> float:
-        """Upper bound (m) on how much closer the two bodies' surfaces can get in one step."""
-        va, wa = self.velocity(a.name)[:3], self.velocity(a.name)[3:]
-        vb, wb = self.velocity(b.name)[:3], self.velocity(b.name)[3:]
-        lo, hi = self._sdf_boxes[a.name]
-        reach = float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))))
-        return (float(np.linalg.norm(va - vb)) + reach * float(np.linalg.norm(wa)) + reach * float(np.linalg.norm(wb))) * self.dt
+        """Upper bound (m) on how much closer the two bodies' surfaces can get in one step.
+
+        A contact lies within ``reach`` of SDF body a's origin, so within ``reach`` + |x_a - x_b| of
+        mesh body b's: each body's rotation moves it by at most its angular speed times that lever.
+        """
+        a_velocity, b_velocity = self.velocity(a.name), self.velocity(b.name)
+        reach = self._reaches[a.name]
+        lever_b = reach + float(np.linalg.norm(self.pose(a.name)[:3, 3] - self.pose(b.name)[:3, 3]))
+        linear = float(np.linalg.norm(a_velocity[:3] - b_velocity[:3]))
+        return (linear + reach * float(np.linalg.norm(a_velocity[3:])) + lever_b * float(np.linalg.norm(b_velocity[3:]))) * self.dt
 
     def _new_warnings(self) -> list[str]:
         import mujoco
