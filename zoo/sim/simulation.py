@@ -52,8 +52,8 @@ INTEGRATORS = {"implicitfast": "implicitfast", "euler": "Euler"}
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
 # copies of a vertex's contact by up to a tenth of the edge: 3 mm on 3 cm triangles)
 MERGE_FRACTION = 0.05
-SPECULATIVE_FACTOR = 1.5
-TUNNEL_FRACTION = 0.25  # of the thinnest SDF body's smallest extent  # a fast pair's margin covers this much more than one step's closing distance
+SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
+TUNNEL_FRACTION = 0.25  # of the thinnest SDF body's smallest extent
 
 
 @dataclass
