@@ -32,6 +32,7 @@ class BenchOptions:
     unseen_category: str | None = None  # --detector: its test meshes, fitted with fit_codes, are the unseen split
     max_shapes: int | None = None  # --detector: seen shapes measured
     n_per_shape: int = 200  # --detector: bench triangles per shape
+    sim_seconds: float = 0.2  # --sim: simulated seconds per run
 
 
 def _run_solvers(opts: BenchOptions) -> None:
@@ -118,7 +119,30 @@ def _run_detector(opts: BenchOptions) -> None:
     console.print(f"written: {path} and the Pareto plot beside it")
 
 
-_SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers, "scenes": _run_scenes, "detector": _run_detector}
+def _run_sim(opts: BenchOptions) -> None:
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
+
+    console = Console(width=max(Console().width, 150))
+    path = run_sim_benchmark(opts.out, seconds=opts.sim_seconds, progress=console.print if opts.progress else (lambda *_: None))
+    report = json.loads(path.read_text())
+    machine = report["machine"]
+    table = Table(title=f"simulations, {report['seconds']} s each (torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})")
+    for column in TABLE_HEADER:
+        table.add_column(column, justify="right")
+    for row in format_table(report):
+        table.add_row(*row)
+    console.print(table)
+    console.print_json(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"]}))
+    console.print(f"written: {path} and sim.png beside it")
+
+
+_SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers, "scenes": _run_scenes, "detector": _run_detector,
+                                                        "sim": _run_sim}
 
 
 @app.command()
@@ -137,12 +161,15 @@ def bench(
                                         "meshes with fit_codes as the unseen split (needs $ZOO_DATA)."),
     max_shapes: int = typer.Option(4, "--max-shapes", min=1, help="With --detector: seen shapes measured."),
     n_per_shape: int = typer.Option(200, "--n-per-shape", min=1, help="With --detector: triangles per shape."),
+    sim: bool = typer.Option(False, "--sim", help="The scenarios simulated (needs $ZOO_DATA): steps/s, time per step, contacts, "
+                             "penetration and memory per contact method, MuJoCo's SDF plugin and CoACD references; JSON and a PNG."),
+    sim_seconds: float = typer.Option(0.2, "--sim-seconds", min=0.002, help="With --sim: simulated seconds per run."),
 ):
     """Measure error against run time and write the results as JSON (solver section by default)."""
-    chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None}.items() if on]
+    chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None, "sim": sim}.items() if on]
     chosen = chosen or [DEFAULT_SECTION]
     opts = BenchOptions(out=out, triangles=triangles, seed=seed, threads=threads or None, progress=not no_progress,
                         scenes=scene or None, model=detector, unseen_category=unseen_category, max_shapes=max_shapes,
-                        n_per_shape=n_per_shape)
+                        n_per_shape=n_per_shape, sim_seconds=sim_seconds)
     for name in chosen:
         _SECTIONS[name](opts)

@@ -16,19 +16,24 @@ all in the SDF's frame (where the SDF is queried):
   many, as in collide), and every face is tested on the best bounds known: for a 1-Lipschitz SDF the
   candidates are exactly collide's (every bound used is a lower bound of the vertex value collide's own
   cull reads, and the cull is monotone in the values);
-* per triangle, the barycentrics of its last answer. A candidate that was a candidate at the last
-  step too, and whose vertices moved less than ``WARM_REACH`` of its longest edge since, is
-  warm-started there (``warm_start``), whatever the method: the vertex test on its lowest vertex
-  (a KKT vertex is the answer, with its gradient as the normal), else :func:`warm_step` (a line search
-  along the steepest descent inside the triangle) and the lower of that and the lowest vertex. Where
-  the warm answer's Frank-Wolfe gap exceeds ``RETRY_GAP`` the method solves the row from scratch too,
-  and the lower answer is kept. New candidates take collide's own narrow phase.
+* per triangle, its last answer: barycentrics, value, normal, and where the triangle was then. A
+  triangle whose answer, less the Lipschitz bound times the farthest its points moved since, stays
+  above the margin is skipped with no query (the answer is taken as the triangle's minimum, as
+  collide takes it). One that moved less than ``reuse_distance`` (a fifth of the margin) keeps its
+  answer, its depth moved to first order along its normal (a persistent contact, as physics engines
+  keep them): a body at rest costs no query. One that moved less than ``WARM_REACH`` of its longest
+  edge is warm-started there (``warm_start``), whatever the method: the vertex test on its lowest
+  vertex (a KKT vertex is the answer, with its gradient as the normal), else :func:`warm_step` (a
+  line search along the steepest descent inside the triangle) and the lower of that and the lowest
+  vertex. Where the warm answer's Frank-Wolfe gap exceeds ``RETRY_GAP`` the method solves the row from
+  scratch too, and the lower answer is kept. New candidates take collide's own narrow phase.
 
 The contacts have collide's fields and meaning (world frame, depths are signed distances, triangles
-index the mesh's faces, rows ordered by triangle). Without warm starts they are collide's; with
-them, a depth only differs by the solvers' own error, and is the lower one (tests/test_coherence.py
-holds both along trajectories; docs/coherence.md measures the savings). ``coherence=False`` calls
-``zoo.collide``.
+index the mesh's faces, rows ordered by triangle). A depth only differs from collide's by the solvers'
+own error, and a warm one is the lower; a kept answer is as good as the answer it keeps, so on an SDF
+with kinks (a box's edges), where the method's answer jumps between nearby poses, pass
+``reuse_distance=0`` (tests/test_coherence.py holds them along trajectories; docs/coherence.md measures
+the savings). ``coherence=False`` calls ``zoo.collide``.
 """
 
 from __future__ import annotations
@@ -61,6 +66,7 @@ from .sdf import Box, Capsule, Sphere, Torus, TransformedSDF, check_sdf
 from .solvers import frank_wolfe, line_search_step
 from .validation import as_pose, int_at_least, non_negative_float, positive_float
 
+COLD, WARM, KEPT = 0, 1, 2  # how a candidate is answered: from scratch, from its last answer, or that answer kept
 # A persisting candidate is warm-started only while its vertices moved less than this fraction of its
 # longest edge since the last step: farther, its last answer says little about the new minimum.
 WARM_REACH = 0.5
@@ -81,6 +87,12 @@ WARM_EDGE_STEPS = 1
 # SDFs stay far below it (sphere on a plane: 2.9e-6 at most; torus: 7.9e-5; the demo mug sliding 0.5 mm per
 # step: 0.02% of them above); inside a box, whose SDF has kinks where a line search stalls, 23% are above.
 RETRY_GAP = 1e-4
+# A candidate whose points moved less than this fraction of the margin (relative to the SDF) since it was last
+# solved keeps its answer, its depth moved to first order along its normal, as a persistent contact manifold
+# does (Bullet keeps a contact while it drifts less than 2% of the body's size). The depth's error is second
+# order in the drift where the surface is smooth (0.2 mm along a 5 mm radius: 4 um), and the drift is measured
+# from where the face was last solved, so a sliding contact is solved again every few steps.
+REUSE_FRACTION = 0.2
 
 
 @dataclass
@@ -97,6 +109,7 @@ class CoherenceStats:
         warm: of those, warm-started from their last barycentrics.
         cold: of those, solved from scratch by the method.
         retried: warm-started ones solved from scratch too (the warm answer's Frank-Wolfe gap exceeded ``RETRY_GAP``).
+        reused: of the candidates, answers kept from an earlier step with no query (moved less than ``reuse_distance``).
     """
 
     steps: int = 0
@@ -108,6 +121,7 @@ class CoherenceStats:
     warm: int = 0
     cold: int = 0
     retried: int = 0
+    reused: int = 0
 
     def add(self, other: CoherenceStats) -> None:
         for key, value in asdict(other).items():
@@ -265,6 +279,9 @@ class CoherentCollider:
         warm_start: warm-start persisting candidates from their last barycentrics (see the module's
             docstring); False keeps the skipping only, and the contacts are collide's.
         lipschitz: the bound a vertex's carried bound decays with as it moves (default :func:`motion_lipschitz`).
+        reuse_distance: m; a candidate whose points moved less than this relative to the SDF since it was solved
+            keeps its answer, its depth updated along its normal; default ``REUSE_FRACTION`` of the margin; 0 solves
+            every candidate at every step. Applies with ``warm_start`` only.
 
     Call it with the poses of each step: ``contacts = collider(sdf_pose, mesh_pose)`` (4x4 world-from-object,
     None is the identity). ``stats`` sums :class:`CoherenceStats` over all calls, ``last_stats`` holds the
@@ -273,7 +290,8 @@ class CoherentCollider:
 
     def __init__(self, sdf, mesh, margin: float = 1e-3, method: str = "fw", *, coherence: bool = True,
                  warm_start: bool = True, iters: int | None = None,
-                 refine: int = 0, voxel_resolution=256, polish: bool = True, lipschitz: float | None = None):
+                 refine: int = 0, voxel_resolution=256, polish: bool = True, lipschitz: float | None = None,
+                 reuse_distance: float | None = None):
         check_sdf(sdf)
         self.sdf = sdf
         self.method = _method(method)
@@ -292,6 +310,8 @@ class CoherentCollider:
         self.coherence = bool(coherence)
         self.warm_start = bool(warm_start)
         self.lipschitz = motion_lipschitz(sdf) if lipschitz is None else positive_float(lipschitz, "lipschitz")
+        reuse = REUSE_FRACTION * self.margin if reuse_distance is None else non_negative_float(reuse_distance, "reuse_distance")
+        self.reuse_distance = reuse if self.warm_start else 0.0
         self.vertices, self.faces = _mesh_arrays(mesh)
         self.stats = CoherenceStats()
         self.last_stats = CoherenceStats()
@@ -305,13 +325,16 @@ class CoherentCollider:
         self._lower = torch.full(v.shape[:1], -torch.inf, dtype=v.dtype, device=v.device)  # (V,) bound of f there
         self._exact = torch.zeros(v.shape[:1], dtype=torch.bool, device=v.device)  # (V,) the bound is f itself
         self._bary = v.new_zeros((f.shape[0], 3))  # (F, 3) each face's last answer
-        self._persists = torch.zeros(f.shape[0], dtype=torch.bool, device=v.device)  # (F,) a candidate last step
-        self._previous = None  # (V, 3) the vertices in the SDF's frame at the last step
+        self._answer = torch.full(f.shape[:1], -torch.inf, dtype=v.dtype, device=v.device)  # (F,) f at the last answer
+        self._answered_at = v.new_zeros((f.shape[0], 3, 3))  # (F, 3, 3) the face, SDF frame, when it was answered
+        self._answer_normal = torch.full((f.shape[0], 3), torch.nan, dtype=v.dtype, device=v.device)  # (F, 3) there, if a contact
 
-    def __call__(self, sdf_pose=None, mesh_pose=None) -> Contacts:
-        """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them."""
+    def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
+        """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them;
+        ``margin`` replaces the collider's for this call (the bounds carried over do not depend on it)."""
+        margin = self.margin if margin is None else non_negative_float(margin, "margin")
         if not self.coherence:
-            return collide(self.sdf, (self.vertices, self.faces), sdf_pose, mesh_pose, self.margin, self.method,
+            return collide(self.sdf, (self.vertices, self.faces), sdf_pose, mesh_pose, margin, self.method,
                            iters=None if self.method == "amortized" else self.iters, refine=self.refine,
                            voxel_resolution=self.voxel_resolution, polish=self.polish)
         device = self.vertices.device
@@ -320,18 +343,21 @@ class CoherentCollider:
         stats = CoherenceStats(steps=1)
         t0 = time.perf_counter()
         local = transform_points((invert_pose(sdf_pose) @ mesh_pose).to(self.vertices.dtype), self.vertices)
-        candidates, f_exact = self._broad_phase(local, stats)
+        candidates, kind, f_exact = self._broad_phase(local, margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:
             contacts = _empty_contacts(local, self.faces.shape[0], self.method)
-            bary = local.new_zeros((0, 3))
+            bary, answer_normals, depths = local.new_zeros((0, 3)), local.new_zeros((0, 3)), local.new_zeros((0,))
+            kind = torch.zeros(0, dtype=torch.int64, device=device)
             contacts.timings = {"broad": t1 - t0, "narrow": 0.0, "normals": 0.0}
         else:
-            bary, depths, grads = self._narrow_phase(local, candidates, f_exact, stats)
+            bary, depths, grads = self._narrow_phase(local, candidates, kind, f_exact, margin, stats)
             points = bary_to_points(local[self.faces[candidates]], bary)
-            keep = depths <= self.margin
+            keep = depths <= margin
             t2 = time.perf_counter()
             normals = self._normals(points[keep], grads[keep])
+            answer_normals = torch.full_like(points, torch.nan)
+            answer_normals[keep] = normals
             world = sdf_pose.to(local.dtype)
             contacts = Contacts(
                 points=transform_points(world, points[keep]), depths=depths[keep],
@@ -339,23 +365,30 @@ class CoherentCollider:
                 n_triangles=int(self.faces.shape[0]), n_candidates=int(candidates.numel()), method=self.method,
                 timings={"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2},
             )
-        self._remember(local, candidates, bary)
+        self._remember(local, candidates, bary, depths, answer_normals, kind == KEPT)
         self.last_stats = stats
         self.stats.add(stats)
         return contacts
 
     # -- broad phase ----------------------------------------------------------------------------
 
-    def _broad_phase(self, local: torch.Tensor, stats: CoherenceStats) -> tuple[torch.Tensor, torch.Tensor]:
-        """The vertices in the SDF's frame (V, 3) -> (collide's candidate faces (C,) ascending, f (V,) at the
-        vertices evaluated at their present position, NaN elsewhere)."""
-        near = _faces_near_bounds(self.sdf, local, self.faces, self.margin)
+    def _broad_phase(self, local: torch.Tensor, margin: float, stats: CoherenceStats
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The vertices in the SDF's frame (V, 3) -> (candidate faces (C,) ascending, how each is answered (C,):
+        ``COLD``, ``WARM`` or ``KEPT``, f (V,) at the vertices evaluated at their present position, NaN elsewhere)."""
+        near = _faces_near_bounds(self.sdf, local, self.faces, margin)
         stats.faces_near = int(near.numel())
+        clears, moved = self._answer_clears(local, near, margin)
+        answered = ~clears & torch.isfinite(self._answer[near])
+        reusable = answered & (moved <= self.reuse_distance)
+        warmable = answered & ~reusable & self._warm_reach(local, near, moved)
+        # kept and warm-started answers need no bounds: only the others go through them
+        kept, warm, near = near[reusable], near[warmable], near[~clears & ~reusable & ~warmable]
         used, corner = torch.unique(self.faces[near], return_inverse=True)  # corner (N, 3): rows of used
         tri = local[self.faces[near]]
         lower = self._carried_lower(local, used)  # (U,)
-        open_ = cell_lower_bounds(tri, lower[corner]) <= self.margin
-        stats.faces_skipped = int(near.numel() - open_.sum())
+        open_ = cell_lower_bounds(tri, lower[corner]) <= margin
+        stats.faces_skipped = int(stats.faces_near - open_.sum())
         stale = self._stale(used, corner, open_, local)
         if stale.numel() >= _CLUSTER_CULL_MIN:  # many vertices: one query per cell first, as collide does
             counted = _CountingSDF(self.sdf)
@@ -363,7 +396,7 @@ class CoherentCollider:
             stats.cell_queries = counted.queries
             lower[stale] = torch.maximum(lower[stale], bound)
             self._anchor_at(used[stale], local, lower[stale], exact=False)
-            open_ &= cell_lower_bounds(tri, lower[corner]) <= self.margin
+            open_ &= cell_lower_bounds(tri, lower[corner]) <= margin
             stale = self._stale(used, corner, open_, local)
         if stale.numel():
             with torch.no_grad():
@@ -373,10 +406,35 @@ class CoherentCollider:
         # every face from the best bounds known (a face an earlier bound cleared whose vertices were all evaluated
         # is tested again on their values, as collide does: the same faces for a 1-Lipschitz SDF, and for a
         # learned one, where a cell bound can exceed a vertex's value, the same as collide's as far as can be)
-        candidates = near[cell_lower_bounds(tri, lower[corner]) <= self.margin]
-        stats.candidates = int(candidates.numel())
+        cold = near[cell_lower_bounds(tri, lower[corner]) <= margin]
+        stats.vertex_queries += self._evaluate_vertices(local, warm)  # for the warm starts' vertex test
+        candidates, order = torch.sort(torch.cat([cold, warm, kept]))
+        kind = torch.cat([torch.full_like(cold, COLD), torch.full_like(warm, WARM), torch.full_like(kept, KEPT)])[order]
+        stats.candidates, stats.reused = int(candidates.numel()), int(kept.numel())
+        stats.faces_skipped -= int(kept.numel() + warm.numel())
         fresh = self._exact & (self._anchor == local).all(dim=-1)
-        return candidates, torch.where(fresh, self._lower, torch.full_like(self._lower, torch.nan))
+        return candidates, kind, torch.where(fresh, self._lower, torch.full_like(self._lower, torch.nan))
+
+    def _evaluate_vertices(self, local: torch.Tensor, faces: torch.Tensor) -> int:
+        """Evaluate f at the vertices of ``faces`` (N,) not yet evaluated where they are now; returns how many."""
+        v = torch.unique(self.faces[faces])
+        v = v[~(self._exact[v] & (self._anchor[v] == local[v]).all(dim=-1))]
+        if v.numel():
+            with torch.no_grad():
+                values = torch.as_tensor(self.sdf(local[v])).reshape(-1).to(self._lower)
+            self._anchor_at(v, local, values, exact=True)
+        return int(v.numel())
+
+    def _answer_clears(self, local: torch.Tensor, faces: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """((N,) bool, (N,)) for the faces ``faces`` (N,): whether their last answer, less the Lipschitz bound times
+        the farthest any of their points moved since (a rigid motion moves a triangle's points at most as far as
+        its farthest vertex), is still above ``margin`` (the minimum the method found then cannot have come within
+        it), and that farthest motion."""
+        answered = self._answered_at[faces]
+        moved = (local[self.faces[faces]] - answered).norm(dim=-1).amax(dim=-1)
+        answer = self._answer[faces]
+        size = torch.maximum(local[self.faces[faces]].abs().amax(dim=(1, 2)), answered.abs().amax(dim=(1, 2)))
+        return answer - self.lipschitz * moved - rounding_slack(answer.abs(), moved, size) > margin, moved
 
     def _carried_lower(self, local: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
         """Lower bounds (U,) of f at the vertices ``used`` (U,) at their present position ``local[used]``:
@@ -404,20 +462,23 @@ class CoherentCollider:
 
     # -- narrow phase ---------------------------------------------------------------------------
 
-    def _narrow_phase(self, local: torch.Tensor, candidates: torch.Tensor, f_exact: torch.Tensor,
-                      stats: CoherenceStats) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Answers on the candidates (C,): bary (C, 3), depths (C,) and gradients (C, 3) where a warm start
-        already took them at the answer (NaN elsewhere)."""
+    def _narrow_phase(self, local: torch.Tensor, candidates: torch.Tensor, kind: torch.Tensor, f_exact: torch.Tensor,
+                      margin: float, stats: CoherenceStats) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Answers on the candidates (C,), each answered as ``kind`` (C,) says: bary (C, 3), depths (C,) and
+        gradients (C, 3) where a warm start or a kept answer has them (NaN elsewhere)."""
         faces = self.faces[candidates]
         tri = local[faces]  # (C, 3, 3)
-        warm = self._warm_rows(local, candidates, tri)
-        stats.warm, stats.cold = int(warm.sum()), int((~warm).sum())
+        warm, reused = kind == WARM, kind == KEPT
+        stats.warm, stats.cold = int(warm.sum()), int((kind == COLD).sum())
         bary = tri.new_zeros((tri.shape[0], 3))
         depths = torch.full_like(tri[:, 0, 0], torch.nan)
         grads = torch.full_like(tri[:, 0], torch.nan)
         solve_sdf = _voxel_of(self.sdf, self.voxel_resolution) if self.method == "voxel-fw" else self.sdf
         with torch.no_grad():
-            cold = (~warm).nonzero().squeeze(-1)
+            r = reused.nonzero().squeeze(-1)
+            if r.numel():
+                bary[r], depths[r], grads[r] = self._kept_answers(candidates[r], tri[r])
+            cold = (~warm & ~reused).nonzero().squeeze(-1)
             w = warm.nonzero().squeeze(-1)
             if w.numel():
                 fv = f_exact[faces[w]] if solve_sdf is self.sdf else _values(solve_sdf, tri[w])
@@ -428,7 +489,7 @@ class CoherentCollider:
                 stats.retried = int(retry.numel())
                 cold = torch.cat([cold, retry])
             if cold.numel():
-                b, d = self._cold(solve_sdf, local, faces[cold], tri[cold], f_exact)
+                b, d = self._cold(solve_sdf, local, faces[cold], tri[cold], f_exact, margin)
                 d = torch.where(torch.isnan(d), _values_at(solve_sdf, tri[cold], b), d)
                 lower = torch.isnan(depths[cold]) | (d < depths[cold])
                 bary[cold] = torch.where(lower.unsqueeze(-1), b, bary[cold])
@@ -443,25 +504,44 @@ class CoherentCollider:
                 depths[unknown] = _values_at(solve_sdf, tri[unknown], bary[unknown])
         return bary, depths, grads
 
-    def _warm_rows(self, local: torch.Tensor, candidates: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
-        """(C,) bool: candidates that were candidates at the last step and moved less than ``WARM_REACH``
-        of their longest edge since."""
-        if not self.warm_start or self._previous is None:
-            return torch.zeros(candidates.shape, dtype=torch.bool, device=candidates.device)
-        faces = self.faces[candidates]
-        moved = (local[faces] - self._previous[faces]).norm(dim=-1).amax(dim=-1)  # (C,)
-        return self._persists[candidates] & (moved <= WARM_REACH * edge_lengths(tri).amax(dim=-1))
+    def _kept_answers(self, faces: torch.Tensor, tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The last answers of the faces ``faces`` (R,), now at ``tri`` (R, 3, 3): bary (R, 3), depths (R,) moved to
+        first order along their normal (unchanged where none is known), normals (R, 3) (NaN where unknown)."""
+        bary, normal = self._bary[faces], self._answer_normal[faces]
+        shift = bary_to_points(tri, bary) - bary_to_points(self._answered_at[faces], bary)
+        depths = self._answer[faces] + torch.nan_to_num((shift * normal).sum(dim=-1))
+        return bary, depths, normal
 
-    def _cold(self, solve_sdf, local, faces, tri, f_exact) -> tuple[torch.Tensor, torch.Tensor]:
+    def _warm_reach(self, local: torch.Tensor, faces: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the faces ``faces`` (N,), which moved ``moved`` (N,) since their last answer, moved less than
+        ``WARM_REACH`` of their longest edge (and warm starts are on)."""
+        if not self.warm_start:
+            return torch.zeros(faces.shape, dtype=torch.bool, device=faces.device)
+        return moved <= WARM_REACH * edge_lengths(local[self.faces[faces]]).amax(dim=-1)
+
+    def _cold(self, solve_sdf, local, faces, tri, f_exact, margin) -> tuple[torch.Tensor, torch.Tensor]:
         """collide's narrow phase on new candidates: bary (N, 3), depths (N,) (NaN where not evaluated)."""
         if self.method == "amortized" and callable(getattr(self.sdf, "detect_mesh", None)):
-            return _amortized_mesh(self.sdf, local, faces, tri, f_exact, self.margin, self.polish)
+            return _amortized_mesh(self.sdf, local, faces, tri, f_exact, margin, self.polish)
         bary = _narrow_phase(solve_sdf, self.sdf, tri, self.method, self.iters)
         return bary, torch.full_like(tri[:, 0, 0], torch.nan)
 
     def _warm(self, solve_sdf, local, faces, tri, start, vertex_values):
-        """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients at them
-        (NaN where not taken). ``vertex_values`` (W, 3): ``solve_sdf`` at the triangles' vertices."""
+        """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients at them.
+        ``vertex_values`` (W, 3): ``solve_sdf`` at the triangles' vertices, NaN where not evaluated at this step:
+        rows with all three get the vertex test first (:meth:`_warm_from_vertices`), the others :func:`warm_step`."""
+        known = torch.isfinite(vertex_values).all(dim=-1)
+        bary, depths, grads = tri.new_empty((tri.shape[0], 3)), tri.new_empty(tri.shape[:1]), tri.new_empty((tri.shape[0], 3))
+        k, u = known.nonzero().squeeze(-1), (~known).nonzero().squeeze(-1)
+        if k.numel():
+            bary[k], depths[k], grads[k] = self._warm_from_vertices(solve_sdf, local, faces[k], tri[k], start[k], vertex_values[k])
+        if u.numel():
+            bary[u], depths[u], grads[u] = warm_step(solve_sdf, tri[u], start[u])
+        return bary, depths, grads
+
+    def _warm_from_vertices(self, solve_sdf, local, faces, tri, start, vertex_values):
+        """:meth:`_warm` where the values at the vertices (W, 3) are known: the vertex test on the lowest vertex, else
+        the lower of :func:`warm_step` and that vertex."""
         f_low, lowest = vertex_values.min(dim=-1)
         g_low = _gradients_at(solve_sdf, local, faces.gather(1, lowest.unsqueeze(1)).squeeze(1))
         low_bary = F.one_hot(lowest, 3).to(tri)
@@ -488,10 +568,14 @@ class CoherentCollider:
             normals[ask] = _contact_normals(solve_sdf, points[ask])
         return normals
 
-    def _remember(self, local: torch.Tensor, candidates: torch.Tensor, bary: torch.Tensor) -> None:
-        """Keep this step's answers for the next: the candidates' barycentrics and the vertices' positions."""
-        self._persists.zero_()
-        self._persists[candidates] = True
-        self._bary[candidates] = bary.to(self._bary)
-        self._previous = local
+    def _remember(self, local: torch.Tensor, candidates: torch.Tensor, bary: torch.Tensor, depths: torch.Tensor,
+                  normals: torch.Tensor, reused: torch.Tensor) -> None:
+        """Keep this step's answers for the next: the solved candidates' barycentrics, values, normals (C, 3) (NaN
+        where not a contact) and where they were (a kept answer stays as it was solved), which faces were
+        candidates, and the vertices' positions."""
+        solved = ~reused
+        self._bary[candidates[solved]] = bary[solved].to(self._bary)
+        self._answer[candidates[solved]] = depths[solved].to(self._answer)
+        self._answered_at[candidates[solved]] = local[self.faces[candidates[solved]]]
+        self._answer_normal[candidates[solved]] = normals[solved].to(self._answer_normal)
         self.last_candidates = candidates

@@ -90,6 +90,45 @@ def refine_near(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.
     return np.concatenate(parts_v), np.concatenate(parts_f), np.concatenate(parts_o)
 
 
+def bisect_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The mesh (vertices (V, 3), faces (F, 3)) with every face's longest edge halved until no edge exceeds ``max_edge``.
+
+    Longest-edge bisection, not subdivision of every edge: a sliver 30 edges long becomes about 30
+    faces, not 4^5. The result covers the same surface; a face split on an edge its neighbour does
+    not split leaves a T-junction, which no collision query minds. Done once when a simulation is
+    built, so a body pair's mesh stays fixed from step to step (what :class:`zoo.CoherentCollider`
+    needs), instead of :func:`refine_near` clipping and refining it at every step.
+
+    Returns:
+        vertices (V', 3), faces (F', 3) (orientation kept), origin (F',) the input face of each
+        output face; None when the result would exceed ``max_faces`` faces.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    origin = np.arange(len(faces))
+    while len(faces):
+        tri = vertices[faces]
+        lengths = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)  # (F, 3): edge k runs from corner k to k + 1
+        longest = lengths.argmax(axis=1)
+        split = np.nonzero(lengths[np.arange(len(faces)), longest] > max_edge)[0]
+        if len(split) == 0:
+            break
+        if len(faces) + len(split) > max_faces:
+            return None
+        k = longest[split]
+        a, b, c = (faces[split, (k + shift) % 3] for shift in range(3))
+        ends = np.sort(np.stack([a, b], axis=1), axis=1)
+        edges, which = np.unique(ends, axis=0, return_inverse=True)  # a shared edge gets one midpoint
+        middle = len(vertices) + which.reshape(-1)
+        vertices = np.concatenate([vertices, vertices[edges].mean(axis=1)])
+        keep = np.ones(len(faces), dtype=bool)
+        keep[split] = False
+        faces = np.concatenate([faces[keep], np.stack([a, middle, c], axis=1), np.stack([middle, b, c], axis=1)])
+        origin = np.concatenate([origin[keep], origin[split], origin[split]])
+    return vertices, faces, origin
+
+
 def _clip_to_box(triangle: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Sutherland-Hodgman: the convex polygon (P, 3) of ``triangle`` (3, 3) inside [lo, hi]."""
     polygon = list(triangle)

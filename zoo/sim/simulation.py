@@ -32,6 +32,7 @@ from .contacts import (
     REFINE_CELLS,
     add_contacts,
     as_numpy,
+    bisect_to_size,
     contact_rows,
     face_normals,
     facing_faces,
@@ -54,6 +55,28 @@ INTEGRATORS = {"implicitfast": "implicitfast", "euler": "Euler"}
 MERGE_FRACTION = 0.05
 SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
 TUNNEL_FRACTION = 0.25  # of the thinnest SDF body's smallest extent
+# a mesh that refining once at build would grow past this many faces (a large plane under a small SDF) is
+# instead clipped and refined near the SDF at every step, from scratch (no temporal coherence for that pair)
+PREREFINE_MAX_FACES = 200_000
+
+
+@dataclass
+class PairMesh:
+    """The mesh one (SDF body, mesh body) pair is collided with, fixed for the whole simulation.
+
+    Attributes:
+        vertices: (V, 3) the mesh body's mesh refined once (:func:`bisect_to_size`), body frame.
+        faces: (F, 3).
+        origin: (F,) the body's own face each face comes from.
+        normals: (F, 3) unit face normals, body frame.
+        collider: the pair's :class:`zoo.CoherentCollider` on that mesh (from scratch when coherence is off).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    origin: np.ndarray
+    normals: np.ndarray
+    collider: object
 
 
 @dataclass
@@ -83,10 +106,14 @@ class Simulation:
         friction: Coulomb friction of every contact.
         solref, solimp: MuJoCo's contact softness, for every contact.
         integrator: "implicitfast" or "euler" (RK4 would recompute collision and lose the contacts).
-        coherence: reserved; every step collides from scratch.
+        coherence: carry each pair's bounds and answers from step to step (:class:`zoo.CoherentCollider`):
+            triangles proven to stay above the margin are skipped, persisting contacts warm-started.
+            False collides every pair from scratch with ``zoo.collide``.
         reduce: reduce contacts to a manifold per patch (False: every contact zoo.collide gives, for
             comparison).
-        refine: clip and subdivide triangles larger than the SDF near it (False: the mesh as given).
+        refine: split mesh triangles larger than a quarter of the SDF once, at build (False: the mesh as
+            given). A mesh that would grow past ``PREREFINE_MAX_FACES`` is clipped to the SDF's box and
+            refined there at every step instead, from scratch.
 
     Attributes:
         contacts: ``zoo.Contacts`` of the last step that went into MuJoCo's solver (after the
@@ -175,6 +202,7 @@ class Simulation:
         # a body pushed deeper than this into a mesh is reported: past its middle a thin mesh's contacts push it through
         self._tunnel_depth = TUNNEL_FRACTION * min((float((hi - lo).min()) for lo, hi in self._sdf_boxes.values()), default=math.inf)
         self._mesh_boxes = {b.name: (b.mesh[0].min(axis=0), b.mesh[0].max(axis=0)) for b in self.bodies.values() if b.mesh is not None}
+        self._pair_meshes = {(a.name, b.name): self._pair_mesh(a, b) for a, b in self._pairs}
         mujoco.mj_step1(self.model, self.data)  # kinematics of the initial state, for pose()
 
     # -- stepping -----------------------------------------------------------------------
@@ -246,6 +274,22 @@ class Simulation:
             collected.append(_select(contacts, keep))
         return rows, raw, used, speculative, collected
 
+    def _max_edge(self, sdf_body: Body) -> float:
+        """The longest mesh edge refinement leaves near ``sdf_body``'s SDF (inf without refinement)."""
+        lo, hi = self._sdf_boxes[sdf_body.name]
+        return float(np.median(hi - lo)) / REFINE_CELLS if self.refine else math.inf  # a thin plate: its side, not its thickness
+
+    def _pair_mesh(self, sdf_body: Body, mesh_body: Body) -> PairMesh | None:
+        """The pair's fixed mesh and collider, or None when the mesh is too large to refine once (see ``refine``)."""
+        refined = bisect_to_size(*mesh_body.mesh, self._max_edge(sdf_body), PREREFINE_MAX_FACES)
+        if refined is None:
+            return None
+        vertices, faces, origin = refined
+        mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
+        collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
+                                        coherence=self.coherence)
+        return PairMesh(vertices=vertices, faces=faces, origin=origin, normals=face_normals(vertices[faces]), collider=collider)
+
     def _collide_pair(self, sdf_body: Body, mesh_body: Body, margin: float):
         """(zoo.Contacts in the world frame, kept indices, its :func:`as_numpy` arrays) of one pair, or None when their boxes miss."""
         t_sdf, t_mesh = self.pose(sdf_body.name), self.pose(mesh_body.name)
@@ -254,27 +298,40 @@ class Simulation:
         mesh_lo, mesh_hi = _world_box(t_mesh, *self._mesh_boxes[mesh_body.name])
         if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
             return None
-        vertices, faces = mesh_body.mesh
-        # the mesh in the SDF's frame, cut to the SDF's box and with large faces refined there
-        sdf_from_mesh = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_mesh  # rigid: a transpose, not a general inverse
-        local = vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
-        max_edge = float(np.median(hi - lo)) / REFINE_CELLS if self.refine else math.inf  # a thin plate: its side, not its thickness
-        local, faces, origin = refine_near(local, faces, lo - margin, hi + margin, max_edge)
-        if len(faces) == 0:
+        pair = self._pair_meshes[(sdf_body.name, mesh_body.name)]
+        if pair is None:
+            contacts, faces_world = self._collide_refining_near(sdf_body, mesh_body, t_sdf, t_mesh, margin)
+        else:
+            contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_mesh), margin=margin)
+            faces_world = pair.normals[np.asarray(contacts.triangles)] @ t_mesh[:3, :3].T  # (K, 3)
+            contacts.triangles = torch.as_tensor(pair.origin)[contacts.triangles]  # back to the body's own faces
+        if contacts is None:
             return None
-        used_v, inverse = np.unique(faces, return_inverse=True)
-        mesh = (torch.as_tensor(local[used_v], dtype=torch.float32), torch.as_tensor(inverse.reshape(-1, 3)))
-        world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
-        contacts = zoo.collide(sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin, method=self._method_for(sdf_body.sdf))
         points, depths, normals = as_numpy(contacts)
-        rotation = t_sdf[:3, :3]
-        faces_world = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ rotation.T  # (K, 3)
-        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the body's own faces
         keep = np.nonzero(facing_faces(normals, faces_world, depths))[0]
         if self.reduce and len(keep):
             merge = MERGE_FRACTION * float((hi - lo).min())
             keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
         return contacts, keep, (points, depths, normals)
+
+    def _collide_refining_near(self, sdf_body: Body, mesh_body: Body, t_sdf: np.ndarray, t_mesh: np.ndarray, margin: float):
+        """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a pair whose mesh is refined
+        near the SDF at this step, or (None, None) when no face reaches the SDF's box."""
+        lo, hi = self._sdf_boxes[sdf_body.name]
+        vertices, faces = mesh_body.mesh
+        # the mesh in the SDF's frame, cut to the SDF's box and with large faces refined there
+        sdf_from_mesh = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_mesh  # rigid: a transpose, not a general inverse
+        local = vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
+        local, faces, origin = refine_near(local, faces, lo - margin, hi + margin, self._max_edge(sdf_body))
+        if len(faces) == 0:
+            return None, None
+        used_v, inverse = np.unique(faces, return_inverse=True)
+        mesh = (torch.as_tensor(local[used_v], dtype=torch.float32), torch.as_tensor(inverse.reshape(-1, 3)))
+        world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
+        contacts = zoo.collide(sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin, method=self._method_for(sdf_body.sdf))
+        faces_world = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ t_sdf[:3, :3].T  # (K, 3)
+        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the body's own faces
+        return contacts, faces_world
 
     def _method_for(self, sdf) -> str:
         if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
@@ -345,6 +402,16 @@ class Simulation:
         if body.actuator_id < 0:
             raise InputError(f"body {name!r} has no drive")
         self.data.ctrl[body.actuator_id] = float(value)
+
+    def collider_stats(self):
+        """``zoo.coherence.CoherenceStats`` summed over every pair's collider and step so far (all zero without coherence)."""
+        from ..coherence import CoherenceStats
+
+        total = CoherenceStats()
+        for pair in getattr(self, "_pair_meshes", {}).values():
+            if pair is not None:
+                total.add(pair.collider.stats)
+        return total
 
     @property
     def time(self) -> float:

@@ -1,0 +1,258 @@
+"""`zoo bench --sim`: the paper's scenarios as simulations, timed per contact method, with two references.
+
+For every scenario (scenes/sim-*.toml on the real meshes) and every way of finding its contacts:
+
+- ``amortized+coherence``: the default (``zoo.CoherentCollider``: bounds and answers carried over steps);
+- ``amortized``: the same detector, every step from scratch (``zoo.collide``);
+- ``fw-10``: Frank-Wolfe, 10 iterations, every step from scratch (the paper's baseline);
+- ``voxel-fw``: Frank-Wolfe on a 256^3 voxel grid of the SDF, from scratch;
+
+and, where they apply (:mod:`benches.sim_references`), MuJoCo's own analytic SDF collision on its nut,
+bolt and gears (``mujoco-sdf-plugin``) and MuJoCo's native collision on a CoACD convex decomposition
+of the same meshes (``coacd-native``), it records steps per second, time per step and collision time
+per step (median, p90), contacts per step, penetration (per step the deepest contact; p50, p99, max
+over steps) and peak memory (each run is its own process: its ``ru_maxrss``).
+
+It also runs issue 25's three-way check on ``mug-hanging`` (the mug released 2 mm above where it
+hangs): the default against amortized from scratch and FW-10, per-step time ratios and how far apart
+the three trajectories end. Writes ``sim.json`` and ``sim.png`` (time per step against penetration).
+
+    python -m benches.sim_bench --out out/bench --seconds 0.2          # or: zoo bench --sim
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from zoo.files import atomic_write_text
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = {  # scenario -> scene file; the scenario's control (a torque on the nut) comes from benches.sim_scenarios
+    "mug-rack": "sim-mug-rack.toml",
+    "mug-hanging": "sim-mug-hanging.toml",
+    "bottle-holder": "sim-bottle-holder.toml",
+    "gear-gear": "sim-gear-gear.toml",
+    "bolt-nut": "sim-bolt-nut.toml",
+}
+METHODS = {
+    "amortized+coherence": {"method": "amortized", "coherence": True},
+    "amortized": {"method": "amortized", "coherence": False},
+    "fw-10": {"method": "fw", "coherence": False},
+    "voxel-fw": {"method": "voxel-fw", "coherence": False},
+}
+REFERENCES = {"mujoco-sdf-plugin": ("bolt-nut", "gear-gear"), "coacd-native": ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")}
+# issue 25's bars
+COLLIDE_MS_MAX = 10.0  # median collision time per step with coherence, Mug-Rack and Bottle-Holder
+SPEEDUP_OVER_FW = 5.0  # whole simulation against FW-10 contacts, same scenes
+BOLT_STEPS_PER_S = 10.0
+CHECK_OVER_FW, CHECK_OVER_SCRATCH, CHECK_APART_M = 5.0, 3.0, 2e-3
+
+
+def percentiles(values, qs) -> dict:
+    values = np.asarray(values, dtype=np.float64)
+    return {f"p{q}" if q != 50 else "median": float(np.percentile(values, q)) if len(values) else 0.0 for q in qs}
+
+
+def simulate(scenario: str, method: str, seconds: float) -> dict:
+    """One (scenario, method) run in this process: the metrics (see the module docstring) and the end pose."""
+    import zoo.sim
+    from benches.sim_scenarios import SCENARIOS
+
+    sim = zoo.sim.load_scene(ROOT / "scenes" / SCENES[scenario], **METHODS[method])
+    sim.build()
+    control = SCENARIOS[scenario].control if scenario in SCENARIOS else None
+    extra = (SCENARIOS[scenario].prepare(sim) or {}) if control is not None else {}
+    started = time.perf_counter()
+    for _ in range(int(round(seconds / sim.dt))):
+        if control is not None:
+            control(sim, extra)
+        sim.step()
+    wall = time.perf_counter() - started
+    log = sim.log
+    moving = next(name for name, body in sim.bodies.items() if body.joint != "fixed")
+    return {
+        "scenario": scenario, "method": method, "dt": sim.dt, "steps": len(log), "wall_s": wall,
+        "steps_per_s": len(log) / wall,
+        "step_ms": percentiles([1e3 * r.step_s for r in log], (50, 90)),
+        "collide_ms": percentiles([1e3 * r.collide_s for r in log], (50, 90)),
+        "contacts_per_step": float(np.mean([r.contacts for r in log])),
+        "penetration_mm": {**percentiles([1e3 * r.max_penetration for r in log], (50, 99)),
+                           "max": 1e3 * max((r.max_penetration for r in log), default=0.0)},
+        "coherence": sim.collider_stats().as_dict() if METHODS[method]["coherence"] else None,
+        "warnings": sim.warnings[:5], "end_position": sim.pose(moving)[:3, 3].tolist(), "body": moving,
+    }
+
+
+def reference(kind: str, scenario: str, seconds: float, dt: float = 0.002) -> dict:
+    from benches import sim_references
+
+    run = {"mujoco-sdf-plugin": sim_references.mujoco_sdf_plugin, "coacd-native": sim_references.coacd_native}[kind]
+    return run(scenario, seconds, dt)
+
+
+def run_isolated(args: list[str], timeout: float) -> dict:
+    """One run in its own process (its own peak memory, no state shared): the child's JSON plus ``peak_memory_mb``."""
+    command = [sys.executable, "-m", "benches.sim_bench", *args]
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout, env={**os.environ})
+    if done.returncode != 0:
+        return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def three_way_check(rows: list[dict]) -> dict:
+    """Issue 25's check on mug-hanging: per-step time ratios and how far apart the end positions are."""
+    by = {r["method"]: r for r in rows if r["scenario"] == "mug-hanging" and "error" not in r}
+    if not {"amortized+coherence", "amortized", "fw-10"} <= set(by):
+        return {"passed": False, "why": "a run is missing"}
+    default = by["amortized+coherence"]
+    over = {m: by[m]["step_ms"]["median"] / default["step_ms"]["median"] for m in ("fw-10", "amortized")}
+    apart = {m: float(np.linalg.norm(np.subtract(by[m]["end_position"], default["end_position"]))) for m in ("fw-10", "amortized")}
+    return {"faster_per_step_than_fw": over["fw-10"], "faster_per_step_than_scratch": over["amortized"],
+            "end_apart_mm": {m: 1e3 * d for m, d in apart.items()},
+            "passed": over["fw-10"] >= CHECK_OVER_FW and over["amortized"] >= CHECK_OVER_SCRATCH and max(apart.values()) < CHECK_APART_M}
+
+
+def speed_bars(rows: list[dict]) -> dict:
+    """Issue 25's speed bars, each with what was measured."""
+    bars = {}
+    for scenario in ("mug-rack", "bottle-holder"):
+        by = {r["method"]: r for r in rows if r["scenario"] == scenario and "error" not in r}
+        if {"amortized+coherence", "fw-10"} <= set(by):
+            ours, fw = by["amortized+coherence"], by["fw-10"]
+            bars[scenario] = {
+                "collide_ms_median": ours["collide_ms"]["median"], "collide_ok": ours["collide_ms"]["median"] <= COLLIDE_MS_MAX,
+                "speedup_over_fw": fw["wall_s"] / ours["wall_s"] * ours["steps"] / fw["steps"],
+                "max_penetration_mm": [ours["penetration_mm"]["max"], fw["penetration_mm"]["max"]],
+            }
+            bars[scenario]["passed"] = bool(bars[scenario]["collide_ok"] and bars[scenario]["speedup_over_fw"] >= SPEEDUP_OVER_FW
+                                            and ours["penetration_mm"]["max"] <= fw["penetration_mm"]["max"])
+    bolt = [r for r in rows if r["scenario"] == "bolt-nut" and r["method"] == "amortized+coherence" and "error" not in r]
+    if bolt:
+        bars["bolt-nut"] = {"steps_per_s": bolt[0]["steps_per_s"], "passed": bolt[0]["steps_per_s"] >= BOLT_STEPS_PER_S}
+    return bars
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Time per step (median) against the deepest penetration, one marker per method, one colour per scenario."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    markers = {"amortized+coherence": "o", "amortized": "s", "fw-10": "^", "voxel-fw": "v", "mujoco-sdf-plugin": "*", "coacd-native": "D"}
+    scenarios = sorted({r["scenario"] for r in rows})
+    colours = dict(zip(scenarios, plt.cm.tab10.colors))
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    for r in rows:
+        if "error" in r:
+            continue
+        ax.scatter(r["step_ms"]["median"], max(r["penetration_mm"]["max"], 1e-4), marker=markers.get(r["method"], "x"),
+                   color=colours[r["scenario"]], s=60)
+    for method, marker in markers.items():
+        ax.scatter([], [], marker=marker, color="grey", label=method)
+    for scenario, colour in colours.items():
+        ax.scatter([], [], marker="o", color=colour, label=scenario)
+    ax.set(xscale="log", yscale="log", xlabel="time per step, median (ms)", ylabel="max penetration (mm)",
+           title="zoo bench --sim: time per step against contact quality")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, methods=None, references: bool = True,
+                      progress=print, timeout: float = 1800) -> Path:
+    """Every (scenario, method) and reference, each in its own process; writes ``out_dir/sim.json`` and ``sim.png``."""
+    from benches.solvers import machine_info
+
+    if not os.environ.get("ZOO_DATA"):
+        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    scenarios = list(scenarios or SCENES)
+    rows = []
+    for scenario in scenarios:
+        for method in methods or METHODS:
+            progress(f"{scenario}: {method} ...")
+            row = run_isolated(["--one", scenario, method, "--seconds", str(seconds)], timeout)
+            rows.append({"scenario": scenario, "method": method, **row})
+            progress(f"  {_summary(rows[-1])}")
+        for kind, applies in REFERENCES.items():
+            if references and scenario in applies:
+                progress(f"{scenario}: {kind} ...")
+                row = run_isolated(["--reference", kind, scenario, "--seconds", str(seconds)], timeout)
+                rows.append({"scenario": scenario, "method": kind, **row})
+                progress(f"  {_summary(rows[-1])}")
+    report = {"seconds": seconds, "machine": machine_info(), "rows": rows, "check_mug_hanging": three_way_check(rows),
+              "speed_bars": speed_bars(rows), "command": "python -m benches.sim_bench " + " ".join(sys.argv[1:])}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "sim.json"
+    atomic_write_text(path, json.dumps(report, indent=1))
+    plot(rows, out_dir / "sim.png")
+    return path
+
+
+def _summary(row: dict) -> str:
+    if "error" in row:
+        return f"error: {row['error']}"
+    collide = f", collide {row['collide_ms']['median']:.1f} ms" if "collide_ms" in row else ""
+    return (f"{row['steps_per_s']:.1f} steps/s, step {row['step_ms']['median']:.1f} ms (p90 {row['step_ms']['p90']:.1f}){collide}, "
+            f"{row['contacts_per_step']:.1f} contacts, penetration max {row['penetration_mm']['max']:.3f} mm, "
+            f"{row.get('peak_memory_mb', 0):.0f} MB")
+
+
+def format_table(report: dict) -> list[list[str]]:
+    """Rows for printing: scenario, method, steps/s, step ms median/p90, collide ms median, contacts, penetration p50/p99/max, MB."""
+    out = []
+    for r in report["rows"]:
+        if "error" in r:
+            out.append([r["scenario"], r["method"], "error: " + r["error"][:60]] + [""] * 8)
+            continue
+        c = r.get("collide_ms")
+        p = r["penetration_mm"]
+        out.append([r["scenario"], r["method"], f"{r['steps_per_s']:.1f}", f"{r['step_ms']['median']:.1f}", f"{r['step_ms']['p90']:.1f}",
+                    f"{c['median']:.1f}" if c else "-", f"{r['contacts_per_step']:.1f}", f"{p['median']:.3f}", f"{p['p99']:.3f}",
+                    f"{p['max']:.3f}", f"{r.get('peak_memory_mb', 0):.0f}"])
+    return out
+
+
+TABLE_HEADER = ["scenario", "method", "steps/s", "step ms", "p90", "collide ms", "contacts", "pen p50 mm", "p99", "max", "peak MB"]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("out/bench"))
+    parser.add_argument("--seconds", type=float, default=0.2)
+    parser.add_argument("--scenario", action="append", choices=sorted(SCENES))
+    parser.add_argument("--method", action="append", choices=sorted(METHODS))
+    parser.add_argument("--no-references", action="store_true")
+    parser.add_argument("--one", nargs=2, metavar=("SCENARIO", "METHOD"), help="one run, JSON on stdout (internal)")
+    parser.add_argument("--reference", nargs=2, metavar=("KIND", "SCENARIO"), help="one reference run, JSON on stdout (internal)")
+    args = parser.parse_args(argv)
+    if args.one or args.reference:
+        row = simulate(*args.one, args.seconds) if args.one else reference(*args.reference, args.seconds)
+        row["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+        print(json.dumps(row, default=float))
+        return
+    path = run_sim_benchmark(args.out, args.seconds, args.scenario, args.method, references=not args.no_references)
+    report = json.loads(path.read_text())
+    for row in format_table(report):
+        print(" | ".join(row))
+    print(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"]}, indent=1))
+    print(f"written: {path}")
+
+
+if __name__ == "__main__":
+    main()
