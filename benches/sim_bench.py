@@ -37,11 +37,11 @@ from zoo.files import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = {  # scenario -> scene file; the scenario's control (a torque on the nut) comes from benches.sim_scenarios
-    "mug-rack": "sim-mug-rack.toml",
     "mug-hanging": "sim-mug-hanging.toml",
     "bottle-holder": "sim-bottle-holder.toml",
-    "gear-gear": "sim-gear-gear.toml",
     "bolt-nut": "sim-bolt-nut.toml",
+    "mug-rack": "sim-mug-rack.toml",
+    "gear-gear": "sim-gear-gear.toml",
 }
 METHODS = {
     "amortized+coherence": {"method": "amortized", "coherence": True},
@@ -183,24 +183,29 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
         raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
     scenarios = list(scenarios or SCENES)
     rows = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "sim.json"
+
+    def write() -> None:  # after every run: a long bench stopped early keeps what it measured
+        report = {"seconds": seconds, "machine": machine_info(), "rows": rows, "check_mug_hanging": three_way_check(rows),
+                  "speed_bars": speed_bars(rows), "command": "python -m benches.sim_bench " + " ".join(sys.argv[1:])}
+        atomic_write_text(path, json.dumps(report, indent=1))
+
     for scenario in scenarios:
         for method in methods or METHODS:
             progress(f"{scenario}: {method} ...")
             row = run_isolated(["--one", scenario, method, "--seconds", str(seconds)], timeout)
             rows.append({"scenario": scenario, "method": method, **row})
             progress(f"  {_summary(rows[-1])}")
+            write()
         for kind, applies in REFERENCES.items():
             if references and scenario in applies:
                 progress(f"{scenario}: {kind} ...")
                 row = run_isolated(["--reference", kind, scenario, "--seconds", str(seconds)], timeout)
                 rows.append({"scenario": scenario, "method": kind, **row})
                 progress(f"  {_summary(rows[-1])}")
-    report = {"seconds": seconds, "machine": machine_info(), "rows": rows, "check_mug_hanging": three_way_check(rows),
-              "speed_bars": speed_bars(rows), "command": "python -m benches.sim_bench " + " ".join(sys.argv[1:])}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "sim.json"
-    atomic_write_text(path, json.dumps(report, indent=1))
-    plot(rows, out_dir / "sim.png")
+                write()
+        plot(rows, out_dir / "sim.png")
     return path
 
 

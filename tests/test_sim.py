@@ -16,7 +16,7 @@ import zoo  # noqa: E402
 import zoo.sim  # noqa: E402
 from benches import sim_check, stress_sim  # noqa: E402
 from zoo.errors import InputError  # noqa: E402
-from zoo.sim.contacts import face_normals, reduce_contacts, refine_near  # noqa: E402
+from zoo.sim.contacts import bisect_to_size, face_normals, reduce_contacts, refine_near  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -100,6 +100,33 @@ def test_refine_clips_large_triangles_to_the_box():
     assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max() <= 0.05 + 1e-9
     assert np.isclose(np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2]).sum() / 2, 0.2 * 0.2)
     assert np.allclose(np.abs(face_normals(tri)[:, 2]), 1)
+
+
+def test_bisection_covers_each_face_with_pieces_no_longer_than_asked():
+    """bisect_to_size against the faces it came from: every piece lies in its origin face's plane and inside it
+    (barycentric coordinates of its corners >= 0), the pieces of a face add up to its area, no edge is longer than
+    asked, orientation is kept; a budget too small gives None; a sliver gives fewer pieces than splitting every edge."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
+    sliver = (np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.2, 0.002, 0.0]]), np.array([[0, 1, 2]]))
+    for v, f in ((np.asarray(mesh.vertices), np.asarray(mesh.faces)), sliver):
+        rv, rf, origin = bisect_to_size(v, f, 0.05, max_faces=100_000)
+        tri, source = rv[rf], v[f[origin]]
+        assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max() <= 0.05 + 1e-12
+        area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) / 2
+        whole = np.linalg.norm(np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0]), axis=1) / 2
+        assert np.allclose(np.bincount(origin, weights=area, minlength=len(f)), whole)
+        assert (np.einsum("ij,ij->i", face_normals(tri), face_normals(source)) > 1 - 1e-9).all()
+        for corner in range(3):  # inside the origin face: barycentric coordinates by least squares, all >= 0
+            edges = np.stack([source[:, 1] - source[:, 0], source[:, 2] - source[:, 0]], axis=2)  # (N, 3, 2)
+            uv = np.linalg.lstsq(edges[0], (tri[:, corner] - source[:, 0])[0], rcond=None)[0] if len(f) == 1 else \
+                np.stack([np.linalg.lstsq(e, p, rcond=None)[0] for e, p in zip(edges, tri[:, corner] - source[:, 0])])
+            uv = np.atleast_2d(uv)
+            assert (uv >= -1e-9).all() and (uv.sum(axis=1) <= 1 + 1e-9).all()
+    every_edge = trimesh.remesh.subdivide_to_size(*sliver, max_edge=0.05)[1]  # splitting all three edges each time
+    assert len(bisect_to_size(*sliver, 0.05, max_faces=100_000)[1]) < len(every_edge)
+    assert bisect_to_size(*sliver, 0.05, max_faces=4) is None
 
 
 # -- stiff and extreme cases (as `zoo stress --sim`) -------------------------------------------
