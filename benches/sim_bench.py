@@ -192,19 +192,13 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
         atomic_write_text(path, json.dumps(report, indent=1))
 
     for scenario in scenarios:
-        for method in methods or METHODS:
+        runs = [(method, ["--one", scenario, method]) for method in methods or METHODS]
+        runs += [(kind, ["--reference", kind, scenario]) for kind, applies in REFERENCES.items() if references and scenario in applies]
+        for method, args in runs:
             progress(f"{scenario}: {method} ...")
-            row = run_isolated(["--one", scenario, method, "--seconds", str(seconds)], timeout)
-            rows.append({"scenario": scenario, "method": method, **row})
+            rows.append({"scenario": scenario, "method": method, **run_isolated([*args, "--seconds", str(seconds)], timeout)})
             progress(f"  {_summary(rows[-1])}")
             write()
-        for kind, applies in REFERENCES.items():
-            if references and scenario in applies:
-                progress(f"{scenario}: {kind} ...")
-                row = run_isolated(["--reference", kind, scenario, "--seconds", str(seconds)], timeout)
-                rows.append({"scenario": scenario, "method": kind, **row})
-                progress(f"  {_summary(rows[-1])}")
-                write()
         plot(rows, out_dir / "sim.png")
     return path
 
