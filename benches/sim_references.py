@@ -46,6 +46,7 @@ from benches.sim_scenarios import (
     thread_pitch,
 )
 from zoo.files import atomic_path, sha256_file
+from zoo.sim.model import mjcf_vector, quaternion
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
@@ -135,19 +136,6 @@ def _scene(scenario: str) -> dict:
     if scenario not in SCENARIOS:
         raise SystemExit(f"unknown scenario {scenario!r}; one of {sorted(SCENARIOS)}")
     return read_scene(SCENES / SCENARIOS[scenario])[0]
-
-
-def _vec(values) -> str:
-    return " ".join(f"{float(v):.17g}" for v in np.asarray(values).reshape(-1))
-
-
-def _quat(rotation: np.ndarray) -> np.ndarray:
-    """(4,) w, x, y, z of a (3, 3) rotation."""
-    import mujoco
-
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rotation, dtype=np.float64).reshape(9))
-    return q
 
 
 def _body_pose(data, body: int) -> np.ndarray:
@@ -251,7 +239,7 @@ def _contact_defaults(friction: float, solref, solimp) -> str:
     scene's solref/solimp, pushing only on touch (zoo.sim's includemargin 0). No margin: MuJoCo 4.0.0
     sums the two geoms' margins into includemargin and its gap did not lower it (tried), so a margin
     would hold bodies apart by twice its value; the scene's margin is zoo.collide's detection distance."""
-    return f'<geom condim="3" friction="{friction:.17g} 0.005 0.0001" solref="{_vec(solref)}" solimp="{_vec(solimp)}"/>'
+    return f'<geom condim="3" friction="{friction:.17g} 0.005 0.0001" solref="{mjcf_vector(solref)}" solimp="{mjcf_vector(solimp)}"/>'
 
 
 def nutbolt_mjcf(dt: float, friction: float, solref, solimp, mass: float, k: float = BOLT_SCALE,
@@ -271,11 +259,11 @@ def nutbolt_mjcf(dt: float, friction: float, solref, solimp, mass: float, k: flo
 <asset><mesh name="nut"><plugin instance="nut"/></mesh><mesh name="bolt"><plugin instance="bolt"/></mesh></asset>
 <default>{_contact_defaults(friction, solref, solimp)}</default>
 <worldbody>
-  <body name="nut" pos="{_vec(PLUGIN_NUT_POS)}" quat="{_vec(PLUGIN_NUT_QUAT)}">
+  <body name="nut" pos="{mjcf_vector(PLUGIN_NUT_POS)}" quat="{mjcf_vector(PLUGIN_NUT_QUAT)}">
     <freejoint name="nut"/>{_inertial(inertial)}
     <geom type="sdf" name="nut" mesh="nut" mass="{mass:.17g}"><plugin instance="nut"/></geom>
   </body>
-  <body name="bolt" quat="{_vec(PLUGIN_BOLT_QUAT)}">
+  <body name="bolt" quat="{mjcf_vector(PLUGIN_BOLT_QUAT)}">
     <geom type="sdf" name="bolt" mesh="bolt"><plugin instance="bolt"/></geom>
   </body>
 </worldbody>
@@ -297,8 +285,8 @@ def _inertial(props: tuple | None) -> str:
     if props is None:
         return ""
     mass, com, inertia = props
-    return (f'<inertial pos="{_vec(com)}" mass="{float(mass):.17g}" fullinertia="'
-            f'{_vec([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]])}"/>')
+    return (f'<inertial pos="{mjcf_vector(com)}" mass="{float(mass):.17g}" fullinertia="'
+            f'{mjcf_vector([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]])}"/>')
 
 
 def plugin_mesh_inertial(model, name: str, mass: float, offset) -> tuple:
@@ -553,19 +541,19 @@ def native_mjcf(scene: dict, pieces: dict[str, list], dt: float) -> str:
     for body in scene["bodies"]:
         name, parts = body["name"], pieces[body["name"]]
         pose = _pose(body)
-        lines = [f'<body name="{name}" pos="{_vec(pose[:3, 3])}" quat="{_vec(_quat(pose[:3, :3]))}">']
+        lines = [f'<body name="{name}" pos="{mjcf_vector(pose[:3, 3])}" quat="{mjcf_vector(quaternion(pose[:3, :3]))}">']
         joint = body.get("joint", "free")
         if joint == "free":
             lines.append(f'<freejoint name="{name}"/>')
         elif joint in ("hinge", "slide"):
-            lines.append(f'<joint name="{name}" type="{joint}" axis="{_vec(body.get("axis", (0, 0, 1)))}" '
-                         f'pos="{_vec(body.get("anchor", (0, 0, 0)))}"/>')
+            lines.append(f'<joint name="{name}" type="{joint}" axis="{mjcf_vector(body.get("axis", (0, 0, 1)))}" '
+                         f'pos="{mjcf_vector(body.get("anchor", (0, 0, 0)))}"/>')
         if joint != "fixed":
             com, inertia = pieces_mass_properties(parts, float(body["mass"]))
-            lines.append(f'<inertial pos="{_vec(com)}" mass="{float(body["mass"]):.17g}" fullinertia="'
-                         f'{_vec([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]])}"/>')
+            lines.append(f'<inertial pos="{mjcf_vector(com)}" mass="{float(body["mass"]):.17g}" fullinertia="'
+                         f'{mjcf_vector([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]])}"/>')
         for i, (v, f) in enumerate(parts):
-            assets.append(f'<mesh name="{name}_{i}" vertex="{_vec(v)}" face="{" ".join(str(int(x)) for x in f.reshape(-1))}"/>')
+            assets.append(f'<mesh name="{name}_{i}" vertex="{mjcf_vector(v)}" face="{" ".join(str(int(x)) for x in f.reshape(-1))}"/>')
             lines.append(f'<geom type="mesh" mesh="{name}_{i}" mass="0"/>')  # the body's <inertial> holds its mass
         lines.append("</body>")
         worldbody.append("\n".join(lines))
@@ -576,7 +564,7 @@ def native_mjcf(scene: dict, pieces: dict[str, list], dt: float) -> str:
             actuators.append(f'<motor name="{name}" joint="{name}" gear="{float(drive.get("gear", 1.0)):.17g}"/>')
     gravity = sim.get("gravity", (0.0, 0.0, -9.81))
     return f"""<mujoco model="coacd-native">
-<option timestep="{dt:.17g}" gravity="{_vec(gravity)}" integrator="{sim.get("integrator", "implicitfast")}"/>
+<option timestep="{dt:.17g}" gravity="{mjcf_vector(gravity)}" integrator="{sim.get("integrator", "implicitfast")}"/>
 <size memory="256M"/>
 <default>{_contact_defaults(float(sim.get("friction", 1.0)), sim.get("solref", (0.02, 1.0)), sim.get("solimp", DEFAULT_SOLIMP))}</default>
 <asset>{"".join(assets)}</asset>

@@ -430,10 +430,10 @@ class CoherentCollider:
         the farthest any of their points moved since (a rigid motion moves a triangle's points at most as far as
         its farthest vertex), is still above ``margin`` (the minimum the method found then cannot have come within
         it), and that farthest motion."""
-        answered = self._answered_at[faces]
-        moved = (local[self.faces[faces]] - answered).norm(dim=-1).amax(dim=-1)
+        answered, now = self._answered_at[faces], local[self.faces[faces]]
+        moved = (now - answered).norm(dim=-1).amax(dim=-1)
         answer = self._answer[faces]
-        size = torch.maximum(local[self.faces[faces]].abs().amax(dim=(1, 2)), answered.abs().amax(dim=(1, 2)))
+        size = torch.maximum(now.abs().amax(dim=(1, 2)), answered.abs().amax(dim=(1, 2)))
         return answer - self.lipschitz * moved - rounding_slack(answer.abs(), moved, size) > margin, moved
 
     def _carried_lower(self, local: torch.Tensor, used: torch.Tensor) -> torch.Tensor:

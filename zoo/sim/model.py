@@ -154,11 +154,13 @@ def explicit_mass_properties(mass: float, inertia, com=None) -> MassProperties:
 # -- MJCF ----------------------------------------------------------------------------------
 
 
-def _vec(values) -> str:
+def mjcf_vector(values) -> str:
+    """An MJCF attribute value: the numbers of ``values`` (any shape), space-separated, to full precision."""
     return " ".join(f"{float(v):.17g}" for v in np.asarray(values).reshape(-1))
 
 
-def _quat(rotation: np.ndarray) -> np.ndarray:
+def quaternion(rotation: np.ndarray) -> np.ndarray:
+    """(4,) w, x, y, z of a (3, 3) rotation, as MuJoCo writes it."""
     import mujoco
 
     q = np.zeros(4)
@@ -168,17 +170,17 @@ def _quat(rotation: np.ndarray) -> np.ndarray:
 
 def _body_xml(body: Body) -> str:
     pose = np.asarray(body.pose, dtype=np.float64)
-    lines = [f'<body name="{body.name}" pos="{_vec(pose[:3, 3])}" quat="{_vec(_quat(pose[:3, :3]))}">']
+    lines = [f'<body name="{body.name}" pos="{mjcf_vector(pose[:3, 3])}" quat="{mjcf_vector(quaternion(pose[:3, :3]))}">']
     if body.joint == "free":
         lines.append(f'<freejoint name="{body.name}"/>')
     elif body.joint in ("hinge", "slide"):
-        lines.append(f'<joint name="{body.name}" type="{body.joint}" axis="{_vec(body.axis)}" pos="{_vec(body.anchor)}"/>')
+        lines.append(f'<joint name="{body.name}" type="{body.joint}" axis="{mjcf_vector(body.axis)}" pos="{mjcf_vector(body.anchor)}"/>')
     if body.mass is not None and body.joint != "fixed":
         mp = body.mass
         full = mp.inertia
         lines.append(
-            f'<inertial pos="{_vec(mp.com)}" mass="{mp.mass:.17g}" fullinertia="'
-            f'{_vec([full[0, 0], full[1, 1], full[2, 2], full[0, 1], full[0, 2], full[1, 2]])}"/>'
+            f'<inertial pos="{mjcf_vector(mp.com)}" mass="{mp.mass:.17g}" fullinertia="'
+            f'{mjcf_vector([full[0, 0], full[1, 1], full[2, 2], full[0, 1], full[0, 2], full[1, 2]])}"/>'
         )
     # the carrier geom: MuJoCo's collision ignores it; sdfzoo's contacts name it
     lines.append(f'<geom name="{body.name}" type="sphere" size="0.001" contype="0" conaffinity="0" group="3" mass="0"/>')
@@ -204,7 +206,7 @@ def mjcf(bodies: list[Body], dt: float, gravity, integrator: str) -> str:
     """The MJCF text of a simulation's bodies (fixed bodies are welded to the world)."""
     actuators = "\n".join(a for a in (_actuator_xml(b) for b in bodies) if a)
     return f"""<mujoco model="zoo.sim">
-<option timestep="{dt:.17g}" gravity="{_vec(gravity)}" integrator="{integrator}">
+<option timestep="{dt:.17g}" gravity="{mjcf_vector(gravity)}" integrator="{integrator}">
   <flag energy="enable"/>
 </option>
 <size memory="256M"/>
