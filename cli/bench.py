@@ -35,6 +35,18 @@ class BenchOptions:
     sim_seconds: float = 0.2  # --sim: simulated seconds per run
 
 
+def _table(title: str, header: list[str], rows: list[list[str]]):
+    """A rich table of right-justified columns."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in header:
+        table.add_column(column, justify="right")
+    for row in rows:
+        table.add_row(*row)
+    return table
+
+
 def _run_solvers(opts: BenchOptions) -> None:
     import json
 
@@ -71,7 +83,6 @@ def _run_scenes(opts: BenchOptions) -> None:
     import json
 
     from rich.console import Console
-    from rich.table import Table
 
     from benches.scenes import TABLE_HEADER, format_table, run_scene_benchmark
 
@@ -80,11 +91,8 @@ def _run_scenes(opts: BenchOptions) -> None:
                                progress=console.print if opts.progress else (lambda *_: None))
     report = json.loads(path.read_text())
     machine = report["machine"]
-    table = Table(title=f"scenes (Table II analog; torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})")
-    for column in TABLE_HEADER:
-        table.add_column(column, justify="right")
-    for row in format_table(report):
-        table.add_row(*row)
+    table = _table(f"scenes (Table II analog; torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})",
+                   TABLE_HEADER, format_table(report))
     console.print(table)
     for sc in report["scenes"]:
         np_ = sc.get("narrow_phase") or {}
@@ -123,7 +131,6 @@ def _run_sim(opts: BenchOptions) -> None:
     import json
 
     from rich.console import Console
-    from rich.table import Table
 
     from benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
 
@@ -131,11 +138,8 @@ def _run_sim(opts: BenchOptions) -> None:
     path = run_sim_benchmark(opts.out, seconds=opts.sim_seconds, progress=console.print if opts.progress else (lambda *_: None))
     report = json.loads(path.read_text())
     machine = report["machine"]
-    table = Table(title=f"simulations, {report['seconds']} s each (torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})")
-    for column in TABLE_HEADER:
-        table.add_column(column, justify="right")
-    for row in format_table(report):
-        table.add_row(*row)
+    table = _table(f"simulations, {report['seconds']} s each (torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})",
+                   TABLE_HEADER, format_table(report))
     console.print(table)
     console.print_json(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"]}))
     console.print(f"written: {path} and sim.png beside it")
