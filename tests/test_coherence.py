@@ -223,6 +223,28 @@ def test_a_body_at_rest_costs_no_query_and_a_drifting_one_keeps_collides_contact
     assert collider.stats.reused > collider.stats.candidates / 2
 
 
+def test_answers_falling_due_at_different_steps_keep_collides_contacts():
+    """A sphere turning in place on a plane: faces drift at rates proportional to their distance from the axis, so
+    their kept answers fall due at different steps, and a round of queries also solves those due soon
+    (REFRESH_FRACTION). The contacts stay collide's (faces within the method's error of the margin aside), and
+    fewer than half the steps ask anything of the SDF."""
+    sphere, mesh = zoo.Sphere(0.05), plane_mesh()
+    counted = CountingSDF(sphere)
+    collider = CoherentCollider(counted, mesh, margin=1e-3, method="fw")
+    asking = 0
+    for step in range(40):
+        before = counted.values + counted.gradients
+        sdf_pose = pose(rotation((0, 0, 1), 0.004 * step), (0.0, 0.0, 0.0493))
+        coherent = collider(sdf_pose, None)
+        scratch = zoo.collide(sphere, mesh, sdf_pose, None, margin=1e-3, method="fw")
+        asking += counted.values + counted.gradients > before
+        common, mine, theirs = np.intersect1d(coherent.triangles.numpy(), scratch.triangles.numpy(), return_indices=True)
+        only = torch.cat([coherent.depths[np.setdiff1d(np.arange(len(coherent)), mine)],
+                          scratch.depths[np.setdiff1d(np.arange(len(scratch)), theirs)]])
+        assert bool(((only - 1e-3).abs() <= CLOSE["fw"]).all()), f"step {step}: a contact far inside the margin differs"
+        assert torch.allclose(coherent.depths[mine], scratch.depths[theirs], atol=5e-6, rtol=0), f"step {step}"
+    assert asking < 20
+
 def test_queries_saved():
     """The same trajectory costs fewer SDF queries coherently (counted at the SDF), and the counters add up."""
     mesh = plane_mesh()

@@ -93,6 +93,10 @@ RETRY_GAP = 1e-4
 # order in the drift where the surface is smooth (0.2 mm along a 5 mm radius: 4 um), and the drift is measured
 # from where the face was last solved, so a sliding contact is solved again every few steps.
 REUSE_FRACTION = 0.2
+# When some kept answer is due to be solved again, those that drifted more than this fraction of ``reuse_distance``
+# are solved with it: a round of SDF queries costs about as much for a few faces as for a few hundred (each query
+# has a fixed cost), and faces solved together fall due together, so most steps need no round at all.
+REFRESH_FRACTION = 0.5
 
 
 @dataclass
@@ -378,9 +382,14 @@ class CoherentCollider:
         ``COLD``, ``WARM`` or ``KEPT``, f (V,) at the vertices evaluated at their present position, NaN elsewhere)."""
         near = _faces_near_bounds(self.sdf, local, self.faces, margin)
         stats.faces_near = int(near.numel())
-        clears, moved = self._answer_clears(local, near, margin)
+        slack, moved = self._answer_slack(local, near, margin)
+        clears = slack > 0
         answered = ~clears & torch.isfinite(self._answer[near])
         reusable = answered & (moved <= self.reuse_distance)
+        if (answered & ~reusable).any():  # a round of queries is due anyway: bring the faces soon due along
+            reusable &= moved <= REFRESH_FRACTION * self.reuse_distance
+            clears &= slack > REFRESH_FRACTION * self.lipschitz * self.reuse_distance
+            answered = ~clears & torch.isfinite(self._answer[near])
         warmable = answered & ~reusable & self._warm_reach(local, near, moved)
         # kept and warm-started answers need no bounds: only the others go through them
         kept, warm, near = near[reusable], near[warmable], near[~clears & ~reusable & ~warmable]
@@ -425,16 +434,16 @@ class CoherentCollider:
             self._anchor_at(v, local, values, exact=True)
         return int(v.numel())
 
-    def _answer_clears(self, local: torch.Tensor, faces: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """((N,) bool, (N,)) for the faces ``faces`` (N,): whether their last answer, less the Lipschitz bound times
-        the farthest any of their points moved since (a rigid motion moves a triangle's points at most as far as
-        its farthest vertex), is still above ``margin`` (the minimum the method found then cannot have come within
-        it), and that farthest motion."""
+    def _answer_slack(self, local: torch.Tensor, faces: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """((N,), (N,)) for the faces ``faces`` (N,): how far their last answer, less the Lipschitz bound times the
+        farthest any of their points moved since (a rigid motion moves a triangle's points at most as far as its
+        farthest vertex), is still above ``margin`` (positive: the minimum the method found then cannot have come
+        within it), and that farthest motion."""
         answered, now = self._answered_at[faces], local[self.faces[faces]]
         moved = (now - answered).norm(dim=-1).amax(dim=-1)
         answer = self._answer[faces]
         size = torch.maximum(now.abs().amax(dim=(1, 2)), answered.abs().amax(dim=(1, 2)))
-        return answer - self.lipschitz * moved - rounding_slack(answer.abs(), moved, size) > margin, moved
+        return answer - self.lipschitz * moved - rounding_slack(answer.abs(), moved, size) - margin, moved
 
     def _carried_lower(self, local: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
         """Lower bounds (U,) of f at the vertices ``used`` (U,) at their present position ``local[used]``:
@@ -484,8 +493,10 @@ class CoherentCollider:
                 fv = f_exact[faces[w]] if solve_sdf is self.sdf else _values(solve_sdf, tri[w])
                 bary[w], depths[w], grads[w] = self._warm(solve_sdf, local, faces[w], tri[w], self._bary[candidates[w]], fv)
                 # a warm answer far from the KKT conditions (a kink of the SDF, a minimum that jumped) is solved
-                # again from scratch too, and the lower answer kept
-                retry = w[frank_wolfe_gap(tri[w], bary[w], grads[w]) > RETRY_GAP]
+                # again from scratch too, and the lower answer kept; not where the gap proves the face stays above
+                # the margin (for a convex f the minimum is at least the answer less its gap: no contact either way)
+                gap = frank_wolfe_gap(tri[w], bary[w], grads[w])
+                retry = w[(gap > RETRY_GAP) & (depths[w] - gap <= margin)]
                 stats.retried = int(retry.numel())
                 cold = torch.cat([cold, retry])
             if cold.numel():
