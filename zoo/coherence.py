@@ -317,6 +317,9 @@ class CoherentCollider:
         reuse = REUSE_FRACTION * self.margin if reuse_distance is None else non_negative_float(reuse_distance, "reuse_distance")
         self.reuse_distance = reuse if self.warm_start else 0.0
         self.vertices, self.faces = _mesh_arrays(mesh)
+        corners = self.vertices[self.faces].to(torch.float64)  # (F, 3, 3), the mesh's frame
+        self._centroid = corners.mean(dim=1)  # (F, 3)
+        self._face_radius = (corners - self._centroid.unsqueeze(1)).norm(dim=-1).amax(dim=-1)  # (F,)
         self.stats = CoherenceStats()
         self.last_stats = CoherenceStats()
         self.last_candidates = torch.zeros(0, dtype=torch.int64, device=self.vertices.device)
@@ -332,6 +335,10 @@ class CoherentCollider:
         self._answer = torch.full(f.shape[:1], -torch.inf, dtype=v.dtype, device=v.device)  # (F,) f at the last answer
         self._answered_at = v.new_zeros((f.shape[0], 3, 3))  # (F, 3, 3) the face, SDF frame, when it was answered
         self._answer_normal = torch.full((f.shape[0], 3), torch.nan, dtype=v.dtype, device=v.device)  # (F, 3) there, if a contact
+        self._clear_bound = torch.full(f.shape[:1], -torch.inf, dtype=torch.float64, device=v.device)  # (F,) proven lower bound of f on the face
+        self._clear_pose = torch.zeros(f.shape[:1], dtype=torch.int64, device=v.device)  # (F,) at this entry of _poses
+        self._clear_centroid = torch.zeros((f.shape[0], 3), dtype=torch.float64, device=v.device)  # (F, 3) SDF frame, then
+        self._poses = torch.zeros((0, 3, 4), dtype=torch.float64, device=v.device)  # (H, 3, 4) SDF-from-mesh, one per call
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
         """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them;
@@ -346,7 +353,9 @@ class CoherentCollider:
         mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(device)
         stats = CoherenceStats(steps=1)
         t0 = time.perf_counter()
-        local = transform_points((invert_pose(sdf_pose) @ mesh_pose).to(self.vertices.dtype), self.vertices)
+        relative = invert_pose(sdf_pose) @ mesh_pose
+        self._poses = torch.cat([self._poses, relative[:3].unsqueeze(0)])
+        local = transform_points(relative.to(self.vertices.dtype), self.vertices)
         candidates, kind, f_exact = self._broad_phase(local, margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:
@@ -382,6 +391,7 @@ class CoherentCollider:
         ``COLD``, ``WARM`` or ``KEPT``, f (V,) at the vertices evaluated at their present position, NaN elsewhere)."""
         near = _faces_near_bounds(self.sdf, local, self.faces, margin)
         stats.faces_near = int(near.numel())
+        near = near[~self._still_clear(near, margin)]
         slack, moved = self._answer_slack(local, near, margin)
         clears = slack > 0
         answered = ~clears & torch.isfinite(self._answer[near])
@@ -392,6 +402,9 @@ class CoherentCollider:
             answered = ~clears & torch.isfinite(self._answer[near])
         warmable = answered & ~reusable & self._warm_reach(local, near, moved)
         # kept and warm-started answers need no bounds: only the others go through them
+        # answers clearing by little are left to this test (exact per vertex, and where a round of queries finds them)
+        lasting = clears & (slack > self.lipschitz * self.reuse_distance)
+        self._prove_clear(near[lasting], slack[lasting] + margin)
         kept, warm, near = near[reusable], near[warmable], near[~clears & ~reusable & ~warmable]
         used, corner = torch.unique(self.faces[near], return_inverse=True)  # corner (N, 3): rows of used
         tri = local[self.faces[near]]
@@ -415,7 +428,9 @@ class CoherentCollider:
         # every face from the best bounds known (a face an earlier bound cleared whose vertices were all evaluated
         # is tested again on their values, as collide does: the same faces for a 1-Lipschitz SDF, and for a
         # learned one, where a cell bound can exceed a vertex's value, the same as collide's as far as can be)
-        cold = near[cell_lower_bounds(tri, lower[corner]) <= margin]
+        bound = cell_lower_bounds(tri, lower[corner])
+        cold = near[bound <= margin]
+        self._prove_clear(near[bound > margin], bound[bound > margin])
         stats.vertex_queries += self._evaluate_vertices(local, warm)  # for the warm starts' vertex test
         candidates, order = torch.sort(torch.cat([cold, warm, kept]))
         kind = torch.cat([torch.full_like(cold, COLD), torch.full_like(warm, WARM), torch.full_like(kept, KEPT)])[order]
@@ -433,6 +448,36 @@ class CoherentCollider:
                 values = torch.as_tensor(self.sdf(local[v])).reshape(-1).to(self._lower)
             self._anchor_at(v, local, values, exact=True)
         return int(v.numel())
+
+    def _still_clear(self, faces: torch.Tensor, margin: float) -> torch.Tensor:
+        """(N,) bool: the faces ``faces`` (N,) whose proven lower bound, less the Lipschitz bound times how far any
+        of their points can have moved since it was proven, is still above ``margin``; no query, no vertex read.
+
+        A point v of a face (centroid g, radius r about it) moved by (A - A_k) v + (b - b_k) between the SDF-from-mesh
+        transforms (A_k, b_k) of the proof and (A, b) now: at most |(A - A_k) g + b - b_k| + ||A - A_k||_F r (the
+        Frobenius norm bounds the spectral one).
+        """
+        bound = self._clear_bound[faces]
+        out = torch.zeros(faces.shape, dtype=torch.bool, device=faces.device)
+        rows = (bound > margin).nonzero().squeeze(-1)
+        if not rows.numel():
+            return out
+        f, now = faces[rows], self._poses[-1]
+        turn = (self._poses[:, :, :3] - now[:, :3]).flatten(1).norm(dim=-1)  # (H,) ||A - A_k||_F per call so far
+        radius = self._face_radius[f]
+        centroid = self._centroid[f] @ now[:, :3].T + now[:, 3]
+        reach = (centroid - self._clear_centroid[f]).norm(dim=-1) + turn[self._clear_pose[f]] * radius
+        size = (centroid.abs().amax(dim=-1) + radius).to(self.vertices.dtype)
+        slack = rounding_slack(bound[rows].abs().to(size), reach.to(size), size)
+        out[rows] = bound[rows] - self.lipschitz * reach - slack > margin
+        return out
+
+    def _prove_clear(self, faces: torch.Tensor, bound: torch.Tensor) -> None:
+        """The faces ``faces`` (N,) hold f >= ``bound`` (N,) everywhere on them at this call's pose."""
+        now = self._poses[-1]
+        self._clear_bound[faces] = bound.to(self._clear_bound)
+        self._clear_pose[faces] = self._poses.shape[0] - 1
+        self._clear_centroid[faces] = self._centroid[faces] @ now[:, :3].T + now[:, 3]
 
     def _answer_slack(self, local: torch.Tensor, faces: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
         """((N,), (N,)) for the faces ``faces`` (N,): how far their last answer, less the Lipschitz bound times the
