@@ -125,7 +125,7 @@ def step_metrics(method: str, scenario: str, dt: float, run: dict, length_scale:
         "steps_per_s": len(step_s) / wall if wall > 0 else float("nan"),
         "step_ms": {"median": 1e3 * float(np.median(step_s)), "p90": 1e3 * float(np.percentile(step_s, 90))},
         "contacts_per_step": float(run["ncon"].mean()),
-        "penetration_mm": {"p50": float(np.percentile(pen_mm, 50)), "p99": float(np.percentile(pen_mm, 99)),
+        "penetration_mm": {"median": float(np.percentile(pen_mm, 50)), "p99": float(np.percentile(pen_mm, 99)),
                            "max": float(pen_mm.max())},
     }
 
