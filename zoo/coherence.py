@@ -97,6 +97,9 @@ REUSE_FRACTION = 0.2
 # are solved with it: a round of SDF queries costs about as much for a few faces as for a few hundred (each query
 # has a fixed cost), and faces solved together fall due together, so most steps need no round at all.
 REFRESH_FRACTION = 0.5
+# Poses kept for the lasting proofs (one per call): when full, the proofs made at the older half are dropped (those faces
+# go back to the exact tests), so the history and its per-call work stay bounded however long the trajectory.
+POSE_HISTORY = 64
 
 
 @dataclass
@@ -354,8 +357,8 @@ class CoherentCollider:
         stats = CoherenceStats(steps=1)
         t0 = time.perf_counter()
         relative = invert_pose(sdf_pose) @ mesh_pose
-        self._poses = torch.cat([self._poses, relative[:3].unsqueeze(0)])
-        local = transform_points(relative.to(self.vertices.dtype), self.vertices)
+        self._record_pose(relative)
+        local =  transform_points(relative.to(self.vertices.dtype), self.vertices)
         candidates, kind, f_exact = self._broad_phase(local, margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:
@@ -402,9 +405,7 @@ class CoherentCollider:
             answered = ~clears & torch.isfinite(self._answer[near])
         warmable = answered & ~reusable & self._warm_reach(local, near, moved)
         # kept and warm-started answers need no bounds: only the others go through them
-        # answers clearing by little are left to this test (exact per vertex, and where a round of queries finds them)
-        lasting = clears & (slack > self.lipschitz * self.reuse_distance)
-        self._prove_clear(near[lasting], slack[lasting] + margin)
+        self._prove_clear(near[clears], slack[clears] + margin, margin)
         kept, warm, near = near[reusable], near[warmable], near[~clears & ~reusable & ~warmable]
         used, corner = torch.unique(self.faces[near], return_inverse=True)  # corner (N, 3): rows of used
         tri = local[self.faces[near]]
@@ -430,7 +431,7 @@ class CoherentCollider:
         # learned one, where a cell bound can exceed a vertex's value, the same as collide's as far as can be)
         bound = cell_lower_bounds(tri, lower[corner])
         cold = near[bound <= margin]
-        self._prove_clear(near[bound > margin], bound[bound > margin])
+        self._prove_clear(near[bound > margin], bound[bound > margin], margin)
         stats.vertex_queries += self._evaluate_vertices(local, warm)  # for the warm starts' vertex test
         candidates, order = torch.sort(torch.cat([cold, warm, kept]))
         kind = torch.cat([torch.full_like(cold, COLD), torch.full_like(warm, WARM), torch.full_like(kept, KEPT)])[order]
@@ -472,12 +473,24 @@ class CoherentCollider:
         out[rows] = bound[rows] - self.lipschitz * reach - slack > margin
         return out
 
-    def _prove_clear(self, faces: torch.Tensor, bound: torch.Tensor) -> None:
-        """The faces ``faces`` (N,) hold f >= ``bound`` (N,) everywhere on them at this call's pose."""
-        now = self._poses[-1]
+    def _prove_clear(self, faces: torch.Tensor, bound: torch.Tensor, margin: float) -> None:
+        """The faces ``faces`` (N,) hold f >= ``bound`` (N,) everywhere on them at this call's pose: those with room to
+        spare (more than L times ``reuse_distance`` above ``margin``) keep it; the others stay in the exact tests, which
+        are tighter and where a round of queries finds them."""
+        spare = bound - margin > self.lipschitz * self.reuse_distance
+        faces, bound, now = faces[spare], bound[spare], self._poses[-1]
         self._clear_bound[faces] = bound.to(self._clear_bound)
         self._clear_pose[faces] = self._poses.shape[0] - 1
         self._clear_centroid[faces] = self._centroid[faces] @ now[:, :3].T + now[:, 3]
+
+    def _record_pose(self, relative: torch.Tensor) -> None:
+        """Append this call's SDF-from-mesh transform (4, 4) to the pose history, dropping its older half when full."""
+        if self._poses.shape[0] == POSE_HISTORY:
+            dropped = POSE_HISTORY // 2
+            self._clear_bound[self._clear_pose < dropped] = -torch.inf
+            self._clear_pose = (self._clear_pose - dropped).clamp_min(0)
+            self._poses = self._poses[dropped:]
+        self._poses = torch.cat([self._poses, relative[:3].unsqueeze(0)])
 
     def _answer_slack(self, local: torch.Tensor, faces: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
         """((N,), (N,)) for the faces ``faces`` (N,): how far their last answer, less the Lipschitz bound times the
