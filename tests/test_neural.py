@@ -79,6 +79,32 @@ def test_source_frame_scales_distances_and_rotates_gradients():
         assert torch.allclose(fd, g[:, axis], atol=1e-5)
 
 
+@pytest.mark.parametrize("smooth_beta", [0.0, 100.0], ids=["leaky", "smooth"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_value_and_grad_by_hand_matches_autograd(smooth_beta, dtype):
+    """The chain rule written out (InferenceDecoder.value_and_input_grad, interpolate_codes_direct_backward) gives
+    autograd's values and gradients through the same forward pass, points on code positions included."""
+    config = dataclasses.replace(SMALL, hidden=(32, 32, 32), smooth_beta=smooth_beta)
+    torch.manual_seed(3)
+    m = NeuralSDF(config, 1, torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        m.codes.normal_(0.0, 0.3)  # features that matter: the interpolation's gradient is not negligible
+    shape = NeuralShape("a", m.decoder, config, m.codes[0], m.positions[0], SIM)
+    p = (torch.rand(500, 3, dtype=torch.float64) - 0.5) * 0.5
+    p[:3] = torch.as_tensor(SIM.to_source(m.positions[0, :3].detach().double().numpy()))  # exactly on codes
+    p = p.to(dtype)
+    d, g = shape.value_and_grad(p)
+    assert shape._value_and_grad_by_hand(p, 1024) is not None  # the hand-written path is the one taken
+    x = p.clone().requires_grad_(True)
+    with torch.enable_grad():
+        (ref_g,) = torch.autograd.grad(shape(x).sum(), x)
+    tol = 1e-4 if dtype == torch.float32 else 1e-9
+    assert d.dtype == g.dtype == dtype
+    assert torch.allclose(d, shape(p), atol=tol, rtol=0)
+    assert torch.allclose(g[3:], ref_g[3:], atol=tol * float(ref_g.abs().max()), rtol=0)
+    assert torch.isfinite(g[:3]).all()
+
+
 def test_dtypes_are_kept_and_bad_input_rejected():
     m = small_model(1)
     s = NeuralShape("a", m.decoder, SMALL, m.codes[0], m.positions[0], SIM)

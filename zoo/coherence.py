@@ -117,6 +117,8 @@ class CoherenceStats:
         cold: of those, solved from scratch by the method.
         retried: warm-started ones solved from scratch too (the warm answer's Frank-Wolfe gap exceeded ``RETRY_GAP``).
         reused: of the candidates, answers kept from an earlier step with no query (moved less than ``reuse_distance``).
+        screened: of the warm-started, those the screen put above the margin (one value-and-gradient query each, no
+            descent: :func:`screen_bound`).
     """
 
     steps: int = 0
@@ -129,6 +131,7 @@ class CoherenceStats:
     cold: int = 0
     retried: int = 0
     reused: int = 0
+    screened: int = 0
 
     def add(self, other: CoherenceStats) -> None:
         for key, value in asdict(other).items():
@@ -176,8 +179,10 @@ def _gradients_at(sdf, local: torch.Tensor, vertices: torch.Tensor) -> torch.Ten
     return _value_and_grad(sdf, local[distinct])[1][inverse]
 
 
-def warm_step(sdf, tri: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def warm_step(sdf, tri: torch.Tensor, start: torch.Tensor, at_start: tuple[torch.Tensor, torch.Tensor] | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Descent from a warm start on each triangle (W, 3, 3): -> (bary (W, 3), f (W,), grad f (W, 3) there).
+    ``at_start``: f (W,) and grad f (W, 3) at the start, where the caller has them (else they are queried).
 
     A value-and-gradient query at the start, then a line search along the steepest descent inside the
     triangle (:func:`_tangent_step`: towards a minimum inside the face, along the edge the point lies on, or
@@ -185,7 +190,7 @@ def warm_step(sdf, tri: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor
     An end that stopped on an edge from inside the face takes one more such step, along it (``WARM_EDGE_STEPS``).
     """
     bary = start.clone()
-    f, g = _value_and_grad(sdf, bary_to_points(tri, bary))
+    f, g = _value_and_grad(sdf, bary_to_points(tri, bary)) if at_start is None else (at_start[0].clone(), at_start[1].clone())
     rows = torch.arange(tri.shape[0], device=tri.device)
     for _ in range(1 + WARM_EDGE_STEPS):
         end = _tangent_step(sdf, tri[rows], bary[rows], f[rows], g[rows])
@@ -201,6 +206,15 @@ def warm_step(sdf, tri: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor
         bary[rows], f[rows], g[rows] = end, f1, g1
         rows = rows[reached]
     return bary, f, g
+
+
+def screen_bound(tri: torch.Tensor, bary: torch.Tensor, f: torch.Tensor, grads: torch.Tensor,
+                 vertex_values: torch.Tensor) -> torch.Tensor:
+    """A lower bound (W,) of f on each triangle (W, 3, 3) from one value ``f`` (W,) and gradient ``grads`` (W, 3) at the
+    points ``bary`` (W, 3) and the values at the vertices (W, 3): the lower of the linearisation's minimum over the
+    triangle (f less its Frank-Wolfe gap, the bound where f is convex) and the lowest vertex (the minimum where f is
+    concave, as a distance is across a medial ridge). Neither alone holds for both; NaN values give NaN."""
+    return torch.minimum(f - frank_wolfe_gap(tri, bary, grads), vertex_values.amin(dim=-1))
 
 
 def _value_and_grad(sdf, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -549,12 +563,14 @@ class CoherentCollider:
             w = warm.nonzero().squeeze(-1)
             if w.numel():
                 fv = f_exact[faces[w]] if solve_sdf is self.sdf else _values(solve_sdf, tri[w])
-                bary[w], depths[w], grads[w] = self._warm(solve_sdf, local, faces[w], tri[w], self._bary[candidates[w]], fv)
+                bary[w], depths[w], grads[w], screened = self._warm(solve_sdf, local, faces[w], tri[w],
+                                                                     self._bary[candidates[w]], fv, margin)
+                stats.screened = int(screened.sum())
                 # a warm answer far from the KKT conditions (a kink of the SDF, a minimum that jumped) is solved
                 # again from scratch too, and the lower answer kept; not where the gap proves the face stays above
                 # the margin (for a convex f the minimum is at least the answer less its gap: no contact either way)
                 gap = frank_wolfe_gap(tri[w], bary[w], grads[w])
-                retry = w[(gap > RETRY_GAP) & (depths[w] - gap <= margin)]
+                retry = w[(gap > RETRY_GAP) & (depths[w] - gap <= margin) & ~screened]
                 stats.retried = int(retry.numel())
                 cold = torch.cat([cold, retry])
             if cold.numel():
@@ -595,37 +611,53 @@ class CoherentCollider:
         bary = _narrow_phase(solve_sdf, self.sdf, tri, self.method, self.iters)
         return bary, torch.full_like(tri[:, 0, 0], torch.nan)
 
-    def _warm(self, solve_sdf, local, faces, tri, start, vertex_values):
-        """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients at them.
-        ``vertex_values`` (W, 3): ``solve_sdf`` at the triangles' vertices, NaN where not evaluated at this step:
-        rows with all three get the vertex test first (:meth:`_warm_from_vertices`), the others :func:`warm_step`."""
+    def _warm(self, solve_sdf, local, faces, tri, start, vertex_values, margin):
+        """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients at them, and
+        which rows the screen settled (W,) bool. ``vertex_values`` (W, 3): ``solve_sdf`` at the triangles' vertices,
+        NaN where not evaluated at this step: rows with all three get the screen and the vertex test first
+        (:meth:`_warm_from_vertices`), the others :func:`warm_step`."""
         known = torch.isfinite(vertex_values).all(dim=-1)
         bary, depths, grads = tri.new_empty((tri.shape[0], 3)), tri.new_empty(tri.shape[:1]), tri.new_empty((tri.shape[0], 3))
+        screened = torch.zeros_like(known)
         k, u = known.nonzero().squeeze(-1), (~known).nonzero().squeeze(-1)
         if k.numel():
-            bary[k], depths[k], grads[k] = self._warm_from_vertices(solve_sdf, local, faces[k], tri[k], start[k], vertex_values[k])
+            bary[k], depths[k], grads[k], screened[k] = self._warm_from_vertices(
+                solve_sdf, local, faces[k], tri[k], start[k], vertex_values[k], margin)
         if u.numel():
             bary[u], depths[u], grads[u] = warm_step(solve_sdf, tri[u], start[u])
-        return bary, depths, grads
+        return bary, depths, grads, screened
 
-    def _warm_from_vertices(self, solve_sdf, local, faces, tri, start, vertex_values):
-        """:meth:`_warm` where the values at the vertices (W, 3) are known: the vertex test on the lowest vertex, else
-        the lower of :func:`warm_step` and that vertex."""
+    def _warm_from_vertices(self, solve_sdf, local, faces, tri, start, vertex_values, margin):
+        """:meth:`_warm` where the values at the vertices (W, 3) are known. One gradient at each lowest vertex gives
+        the vertex test (a lowest vertex that is a KKT point is the answer) and the screen (:func:`screen_bound`
+        there: a face it puts above ``margin`` is answered by that bound, with no descent, and is no contact). The
+        others take the value and gradient at their last answer, and the screen again from there (tight where the
+        face moved little: its gap is near 0 at a minimiser); the rest get the lower of :func:`warm_step` from that
+        query and the vertex. -> bary, depths, gradients, screened (W,)."""
         f_low, lowest = vertex_values.min(dim=-1)
         g_low = _gradients_at(solve_sdf, local, faces.gather(1, lowest.unsqueeze(1)).squeeze(1))
         low_bary = F.one_hot(lowest, 3).to(tri)
-        # the vertex test, as solve_mesh's: a lowest vertex that is a KKT point is the answer
-        scores = torch.einsum("wc,wvc->wv", g_low, tri)
-        settled = scores.amin(dim=-1) >= scores.gather(1, lowest.unsqueeze(1)).squeeze(1)
-        bary, depths, grads = low_bary.clone(), f_low.clone(), g_low.clone()
-        rows = (~settled).nonzero().squeeze(-1)
+        bound = screen_bound(tri, low_bary, f_low, g_low, vertex_values)
+        screened = bound > margin
+        # the vertex test, as solve_mesh's: a lowest vertex that is a KKT point (its Frank-Wolfe gap is 0) is the answer
+        settled = bound >= f_low
+        # a screened face keeps its last answer's barycentrics: the next warm start is there
+        bary = torch.where(screened.unsqueeze(-1), start, low_bary)
+        depths, grads = torch.where(screened, bound, f_low), g_low.clone()
+        rows = (~settled & ~screened).nonzero().squeeze(-1)
+        if rows.numel():
+            f0, g0 = _value_and_grad(solve_sdf, bary_to_points(tri[rows], start[rows]))
+            again = screen_bound(tri[rows], start[rows], f0, g0, vertex_values[rows])
+            clear = again > margin
+            screened[rows[clear]], bary[rows[clear]], depths[rows[clear]] = True, start[rows[clear]], again[clear]
+            rows, f0, g0 = rows[~clear], f0[~clear], g0[~clear]
         if rows.numel():  # the others: the best of the last answer and one step from it each way, or the vertex
-            moved, f, g = warm_step(solve_sdf, tri[rows], start[rows])
+            moved, f, g = warm_step(solve_sdf, tri[rows], start[rows], (f0, g0))
             better = f < f_low[rows]
             bary[rows] = torch.where(better.unsqueeze(-1), moved, low_bary[rows])
             depths[rows] = torch.where(better, f, f_low[rows])
             grads[rows] = torch.where(better.unsqueeze(-1), g, g_low[rows])
-        return bary, depths, grads
+        return bary, depths, grads, screened
 
     def _normals(self, points: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
         """Unit normals (K, 3) at the contacts (K, 3): the gradients a warm start took, queried elsewhere."""

@@ -133,6 +133,27 @@ def interpolate_codes_direct(points: torch.Tensor, cloud_b: torch.Tensor, codes_
     return out[:, :-1] / out[:, -1:]
 
 
+def interpolate_codes_direct_backward(points: torch.Tensor, positions: torch.Tensor, codes: torch.Tensor,
+                                      features: torch.Tensor, grad_features: torch.Tensor, eps: float) -> torch.Tensor:
+    """The gradient (P, 3) at the points (P, 3) of ``(grad_features * features).sum()``, where ``features`` (P, C)
+    are :func:`interpolate_codes_direct`'s at the points for the cloud ``positions`` (K, 3), ``codes`` (K, C), and
+    ``grad_features`` (P, C) is d(output)/d(features); what autograd gives through that function, without a graph.
+
+    With w_j = max(d2_j, eps)^-1.5, S = sum_j w_j and z = sum_j w_j c_j / S:
+    dz/dx = sum_j (dw_j/dx) (c_j - z)^T / S and dw_j/dx = -3 w_j (x - x_j) / d2_j (0 where d2_j < eps, where the
+    clamp holds w_j constant).
+    """
+    d2 = (points.square().sum(-1, keepdim=True) + positions.square().sum(-1) - 2.0 * points @ positions.T)  # (P, K)
+    below = d2 < eps
+    r = d2.clamp_min_(eps).rsqrt_()
+    w = r.pow(3)  # (P, K)
+    total = w.sum(-1, keepdim=True)  # (P, 1)
+    # a_j = -3 (w_j / d2_j) (g . c_j - g . z) / S: the weight of (x - x_j) in the gradient
+    a = (grad_features @ codes.T).sub_((grad_features * features).sum(-1, keepdim=True))
+    a.mul_(w).mul_(r.square_()).mul_(-3.0 / total).masked_fill_(below, 0.0)
+    return points * a.sum(-1, keepdim=True) - a @ positions
+
+
 def chunk_size(n_codes: int) -> int:
     """Points per chunk such that a (chunk, n_codes) matrix stays near ``_CHUNK_ELEMENTS``."""
     return max(1024, _CHUNK_ELEMENTS // max(1, n_codes))
@@ -154,6 +175,14 @@ def activation(x: torch.Tensor, negative_slope: float, smooth_beta: float, inpla
     if inplace:
         return x.mul_(negative_slope).add_(soft, alpha=1.0 - negative_slope)
     return negative_slope * x + (1.0 - negative_slope) * soft
+
+
+def activation_derivative(x: torch.Tensor, negative_slope: float, smooth_beta: float) -> torch.Tensor:
+    """d activation / dx elementwise (the same shape as x): for the LeakyReLU 1 or the slope (autograd's choice, the
+    slope, at 0), for the smooth one slope + (1 - slope) sigmoid(beta x)."""
+    if not smooth_beta:
+        return torch.where(x > 0, torch.ones_like(x), torch.full_like(x, negative_slope))
+    return torch.sigmoid(smooth_beta * x).mul_(1.0 - negative_slope).add_(negative_slope)
 
 
 class Decoder(nn.Module):
@@ -232,6 +261,35 @@ class InferenceDecoder:
             buf[:, :w] = h
             h = activation(buf @ weight, slope, beta, inplace=True)
         return torch.addmm(self.out_bias, h, self.out_weight).squeeze(-1)
+
+    def value_and_input_grad(self, features: torch.Tensor, points: torch.Tensor
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The decoder's value (P,) and its gradients with respect to ``features`` (P, C) and ``points`` (P, 3):
+        the forward pass of :meth:`__call__` keeping each layer's pre-activation, then the chain rule by hand,
+        layer by layer (what autograd computes, without building a graph: no per-call engine overhead)."""
+        n, c = features.shape[0], features.shape[-1]
+        w = self.width
+        buf = features.new_empty((n, w + c + 4))
+        buf[:, w : w + c] = features
+        buf[:, w + c : w + c + 3] = points
+        buf[:, w + c + 3] = 1.0
+        slope, beta = self.decoder.negative_slope, self.decoder.smooth_beta
+        pre = [buf[:, w:] @ self.weights[0]]
+        for weight in self.weights[1:]:
+            buf[:, :w] = activation(pre[-1], slope, beta)
+            pre.append(buf @ weight)
+        value = torch.addmm(self.out_bias, activation(pre[-1], slope, beta), self.out_weight).squeeze(-1)
+        grad_in = features.new_zeros((n, c + 3))  # d value / d [z; x]
+        grad_h = self.out_weight.T.expand(n, w)
+        for k in range(len(pre) - 1, -1, -1):
+            grad_pre = grad_h * activation_derivative(pre[k], slope, beta)
+            grad_rows = grad_pre @ self.weights[k].T  # (P, rows of layer k): [h; z; x; 1], or [z; x; 1] for k = 0
+            if k:
+                grad_h = grad_rows[:, :w]
+                grad_in += grad_rows[:, w : w + c + 3]
+            else:
+                grad_in += grad_rows[:, : c + 3]
+        return value, grad_in[:, :c], grad_in[:, c:]
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -395,6 +453,10 @@ class NeuralShape(SDFBase):
 
     def _value_and_grad(self, points: torch.Tensor, create_graph: bool = False):
         n = chunk_size(self.config.n_codes)
+        if not create_graph and not (torch.is_grad_enabled() and points.requires_grad):
+            fast = self._value_and_grad_by_hand(points, n)
+            if fast is not None:
+                return fast
         values, grads = [], []
         for chunk in points.split(n):
             with torch.enable_grad():
@@ -403,6 +465,27 @@ class NeuralShape(SDFBase):
                 (g,) = torch.autograd.grad(d.sum(), x, create_graph=create_graph)
             values.append(d if create_graph else d.detach())
             grads.append(g if create_graph else g.detach())
+        return torch.cat(values), torch.cat(grads)
+
+    def _value_and_grad_by_hand(self, points: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """:meth:`_value_and_grad` with the chain rule written out (:meth:`InferenceDecoder.value_and_input_grad`,
+        :func:`interpolate_codes_direct_backward`) in chunks of ``n``; None where those do not apply (a decoder
+        :class:`InferenceDecoder` does not support, or the softmax form of the weights)."""
+        dec = self._decoder_no_grad(points.dtype, points.device)
+        _, pos, codes, direct = self._cached(points.dtype, points.device)
+        if direct is None or not isinstance(dec, InferenceDecoder):
+            return None
+        s, r, t = self._similarity_tensors(points)
+        eps = self.config.eps
+        values, grads = [], []
+        with torch.no_grad():
+            for chunk in points.split(n):
+                x = s * chunk @ r.T + t
+                z = interpolate_codes_direct(x, *direct, eps)
+                d, grad_z, grad_x = dec.value_and_input_grad(z, x)
+                grad_x += interpolate_codes_direct_backward(x, pos[0], codes[0], z, grad_z, eps)
+                values.append(d / s)
+                grads.append(grad_x @ r)  # the source frame's gradient: R^T grad_n (the scale cancels)
         return torch.cat(values), torch.cat(grads)
 
     def value_and_grad(self, points, create_graph: bool = False):
