@@ -75,10 +75,12 @@ PRESETS = Presets(
                    EvalConfig(n_near=10_000, n_uniform=10_000), steps_per_shape=37.1, min_steps=600),
     # small categories of parts with sub-millimetre detail (a bolt's thread, gear teeth), where default's 600
     # steps leave the NeuralSDF off the mesh by more than a part's clearance: samples 2.5x denser and 60% of
-    # them in a band of sigma 0.002 (0.1 mm on an M16 bolt), 6000 steps of 3 shapes x 4096 points (32 minutes
-    # on one core of the 2-core machine for the bolts; docs/sim-scenarios.md gives what it reached)
+    # them in a band of sigma 0.002 (0.1 mm on an M16 bolt), and a decoder that also sees 8 levels of Fourier
+    # features of the position; 3000 steps of 3 shapes x 4096 points (about 20 minutes on one core of the
+    # 2-core machine for the bolts; docs/sim-scenarios.md gives what it reached, and what it did without them)
     fine=Preset("fine", SampleConfig(n_points=250_000, near_sigmas=(0.002, 0.02), fractions=(0.6, 0.3, 0.1)),
-                replace(fit_preset("default"), steps=6000, shapes_per_step=3, points_per_shape=4096, checkpoint_every=200),
+                replace(fit_preset("default"), sdf=replace(fit_preset("default").sdf, fourier_levels=8), steps=3000,
+                        shapes_per_step=3, points_per_shape=4096, checkpoint_every=200),
                 EvalConfig(n_near=10_000, n_uniform=10_000)),
 )
 

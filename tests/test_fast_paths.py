@@ -124,10 +124,10 @@ def test_features_and_distances_is_features_then_the_decoder(monkeypatch):
     assert shape.normalised is shape.normalised  # built once, sharing the converted networks
 
 
-@pytest.mark.parametrize("smooth_beta", [0.0, 100.0])
+@pytest.mark.parametrize("smooth_beta,fourier_levels", [(0.0, 0), (100.0, 0), (100.0, 4)])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_inference_decoder_is_the_decoder_and_follows_its_weights(dtype, smooth_beta):
-    shape = small_shape(config=dataclasses.replace(SMALL, smooth_beta=smooth_beta))
+def test_inference_decoder_is_the_decoder_and_follows_its_weights(dtype, smooth_beta, fourier_levels):
+    shape = small_shape(config=dataclasses.replace(SMALL, smooth_beta=smooth_beta, fourier_levels=fourier_levels))
     p = (torch.rand(700, 3, dtype=torch.float64) - 0.5).to(dtype)
     z = shape.features(p)
     dec = shape._cached(dtype, "cpu")[0]
