@@ -372,7 +372,7 @@ class CoherentCollider:
         t0 = time.perf_counter()
         relative = invert_pose(sdf_pose) @ mesh_pose
         self._record_pose(relative)
-        local =  transform_points(relative.to(self.vertices.dtype), self.vertices)
+        local = transform_points(relative.to(self.vertices.dtype), self.vertices)
         candidates, kind, f_exact = self._broad_phase(local, margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:

@@ -127,8 +127,7 @@ def interpolate_codes_direct(points: torch.Tensor, cloud_b: torch.Tensor, codes_
     :func:`direct_weights_are_safe`. Differentiable in the points when they require grad
     (out-of-place ops then; in place otherwise, which saves passes over the (P, K) matrix).
     """
-    a = torch.cat([points, points.square().sum(-1, keepdim=True), torch.ones_like(points[:, :1])], dim=-1)  # (P, 5)
-    d2 = a @ cloud_b.T  # (P, K): |p - x_j|^2 by expansion, as code_weights
+    d2 = _squared_distances(points, cloud_b)
     # max(d2, eps) for max(d2, 0) + eps: they differ only where d2 < eps (1e-16: a point on a code,
     # where the expansion's own rounding is ~1e-8 anyway), and it saves a pass over (P, K)
     if torch.is_grad_enabled() and points.requires_grad:
@@ -139,24 +138,38 @@ def interpolate_codes_direct(points: torch.Tensor, cloud_b: torch.Tensor, codes_
     return out[:, :-1] / out[:, -1:]
 
 
-def interpolate_codes_direct_backward(points: torch.Tensor, positions: torch.Tensor, codes: torch.Tensor,
-                                      features: torch.Tensor, grad_features: torch.Tensor, eps: float) -> torch.Tensor:
-    """The gradient (P, 3) at the points (P, 3) of ``(grad_features * features).sum()``, where ``features`` (P, C)
-    are :func:`interpolate_codes_direct`'s at the points for the cloud ``positions`` (K, 3), ``codes`` (K, C), and
-    ``grad_features`` (P, C) is d(output)/d(features); what autograd gives through that function, without a graph.
+def _squared_distances(points: torch.Tensor, cloud_b: torch.Tensor) -> torch.Tensor:
+    """|p - x_j|^2 (P, K) of points (P, 3) to the codes, by expansion in one matmul with :func:`augmented_code_cloud`'s ``b``."""
+    a = torch.cat([points, points.square().sum(-1, keepdim=True), torch.ones_like(points[:, :1])], dim=-1)  # (P, 5)
+    return a @ cloud_b.T
 
-    With w_j = max(d2_j, eps)^-1.5, S = sum_j w_j and z = sum_j w_j c_j / S:
-    dz/dx = sum_j (dw_j/dx) (c_j - z)^T / S and dw_j/dx = -3 w_j (x - x_j) / d2_j (0 where d2_j < eps, where the
-    clamp holds w_j constant).
+
+def interpolate_codes_direct_keeping_weights(points: torch.Tensor, cloud_b: torch.Tensor, codes_1: torch.Tensor, eps: float
+                                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`interpolate_codes_direct` without gradients, also returning what its backward reads: -> features (P, C),
+    r = rsqrt(max(d2, eps)) (P, K) and the weight sums (P, 1)."""
+    r = _squared_distances(points, cloud_b).clamp_min_(eps).rsqrt_()
+    out = r.pow(3) @ codes_1  # (P, C + 1): sum_j w_j c_j and sum_j w_j
+    total = out[:, -1:]
+    return out[:, :-1] / total, r, total
+
+
+def interpolate_codes_direct_backward(points: torch.Tensor, positions: torch.Tensor, codes: torch.Tensor,
+                                      features: torch.Tensor, grad_features: torch.Tensor, r: torch.Tensor,
+                                      total: torch.Tensor, eps: float) -> torch.Tensor:
+    """The gradient (P, 3) at the points (P, 3) of ``(grad_features * features).sum()``, where ``features`` (P, C),
+    ``r`` (P, K) and ``total`` (P, 1) are :func:`interpolate_codes_direct_keeping_weights`'s at the points for the cloud
+    ``positions`` (K, 3), ``codes`` (K, C), and ``grad_features`` (P, C) is d(output)/d(features); what autograd gives
+    through that function, without a graph. ``r`` is overwritten.
+
+    With w_j = max(d2_j, eps)^-1.5 = r_j^3, S = sum_j w_j and z = sum_j w_j c_j / S:
+    dz/dx = sum_j (dw_j/dx) (c_j - z)^T / S and dw_j/dx = -3 r_j^5 (x - x_j) (0 where d2_j <= eps, where the clamp
+    holds w_j constant: r_j at its largest, eps^-0.5, to rounding).
     """
-    d2 = (points.square().sum(-1, keepdim=True) + positions.square().sum(-1) - 2.0 * points @ positions.T)  # (P, K)
-    below = d2 < eps
-    r = d2.clamp_min_(eps).rsqrt_()
-    w = r.pow(3)  # (P, K)
-    total = w.sum(-1, keepdim=True)  # (P, 1)
-    # a_j = -3 (w_j / d2_j) (g . c_j - g . z) / S: the weight of (x - x_j) in the gradient
+    below = r >= (1.0 - 1e-6) * eps ** -0.5
+    # a_j = -3 r_j^5 (g . c_j - g . z) / S: the weight of (x - x_j) in the gradient
     a = (grad_features @ codes.T).sub_((grad_features * features).sum(-1, keepdim=True))
-    a.mul_(w).mul_(r.square_()).mul_(-3.0 / total).masked_fill_(below, 0.0)
+    a.mul_(r.pow(5)).mul_(-3.0 / total).masked_fill_(below, 0.0)
     return points * a.sum(-1, keepdim=True) - a @ positions
 
 
@@ -518,9 +531,9 @@ class NeuralShape(SDFBase):
         with torch.no_grad():
             for chunk in points.split(n):
                 x = s * chunk @ r.T + t
-                z = interpolate_codes_direct(x, *direct, eps)
+                z, r_codes, total = interpolate_codes_direct_keeping_weights(x, *direct, eps)
                 d, grad_z, grad_x = dec.value_and_input_grad(z, x)
-                grad_x += interpolate_codes_direct_backward(x, pos[0], codes[0], z, grad_z, eps)
+                grad_x += interpolate_codes_direct_backward(x, pos[0], codes[0], z, grad_z, r_codes, total, eps)
                 values.append(d / s)
                 grads.append(grad_x @ r)  # the source frame's gradient: R^T grad_n (the scale cancels)
         return torch.cat(values), torch.cat(grads)
