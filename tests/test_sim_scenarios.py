@@ -32,6 +32,18 @@ def test_teeth_counted_on_the_industreal_gears(meshes):
 
 
 @needs_meshes
+def test_gear_meshes_turn_in_mesh_with_backlash_at_their_assembly_pose(meshes):
+    from benches.gear_clearance import clearance
+
+    rows = clearance(offsets_deg=[-1.0, 0.0, 1.0], phases=3, samples=40_000)
+    exact = {r["offset_deg"]: r["exact_m"] for r in rows}
+    # the meshes' backlash: clear through a tooth period at the assembly's phase, their teeth overlapping a degree off it
+    assert 0.1e-3 < exact[0.0] < 0.3e-3
+    assert exact[-1.0] < 0 and exact[1.0] < 0
+    assert all(np.isfinite(r["neural_m"]) for r in rows)
+
+
+@needs_meshes
 def test_m16_thread_is_right_handed_with_a_2_mm_pitch(meshes):
     from benches.sim_scenarios import BOLT_FILE, _mesh, thread_pitch
 
