@@ -33,6 +33,7 @@ from .contacts import (
     add_contacts,
     as_numpy,
     bisect_to_size,
+    closing_in_time,
     contact_rows,
     face_normals,
     facing_faces,
@@ -270,6 +271,10 @@ class Simulation:
                 continue
             contacts, keep, arrays = found
             raw += len(contacts)
+            keep = keep[closing_in_time(*(a[keep] for a in arrays), self._motion(sdf_body), self._motion(mesh_body),
+                                        self.dt, SPECULATIVE_FACTOR)]
+            if len(keep) == 0:
+                continue
             rows.append(contact_rows(arrays, keep, (sdf_body.geom_id, mesh_body.geom_id)))
             collected.append(_select(contacts, keep))
         return rows, raw, used, speculative, collected
@@ -374,6 +379,10 @@ class Simulation:
         pose[:3, :3] = d.xmat[body.body_id].reshape(3, 3)
         pose[:3, 3] = d.xpos[body.body_id]
         return pose
+
+    def _motion(self, body: Body) -> tuple[np.ndarray, np.ndarray]:
+        """(origin (3,), velocity (6,)) of ``body``, world frame, as :func:`closing_in_time` takes them."""
+        return self.pose(body.name)[:3, 3], self.velocity(body.name)
 
     def velocity(self, name: str) -> np.ndarray:
         """(6,) linear velocity of the body's origin and angular velocity, world frame."""
