@@ -22,6 +22,7 @@ def fit_category(
     device: str = typer.Option("cpu", "--device", help="torch device for training: cpu, cuda, cuda:1, ..."),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0: torch's default)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bars (off: plain log lines)."),
+    steps: int = typer.Option(None, "--steps", help="Training steps, replacing the preset's (the model card records it)."),
 ):
     """Fit a category NeuralSDF to its train meshes and write a package that zoo.load(OUT) opens.
 
@@ -34,7 +35,7 @@ def fit_category(
     if threads:
         torch.set_num_threads(threads)
     run = run_fit_category(category, data, preset, out, work, device=device, progress=progress,
-                           log=lambda line: typer.echo(line, err=True))
+                           log=lambda line: typer.echo(line, err=True), steps=steps)
     train = run.metrics.get("train", {})
     typer.echo(f"{run.category.name}: {len(run.stems)} shapes -> {run.out_dir}")
     if train:

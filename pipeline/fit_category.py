@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 
 from zoo.files import atomic_path
+from zoo.validation import int_at_least
 
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
 from .fit_sdf import FitConfig, fit_sdf, load_training_data, print_log, save_result
@@ -52,9 +53,17 @@ class Preset:
     # [min_steps, fit.steps]; None trains fit.steps whatever the number of shapes
     steps_per_shape: float | None = None
     min_steps: int = 0
+    steps: int | None = None  # ``--steps``: train exactly this many steps, whatever the rules above give
+
+    @property
+    def options(self) -> str:
+        """The `zoo fit-category` options that select this preset."""
+        return f"--preset {self.name}" + ("" if self.steps is None else f" --steps {self.steps}")
 
     def fit_config(self, n_shapes: int) -> FitConfig:
         """The training config for a category of ``n_shapes`` train shapes."""
+        if self.steps is not None:
+            return replace(self.fit, steps=self.steps)
         if self.steps_per_shape is None:
             return self.fit
         steps = int(round(self.steps_per_shape * n_shapes))
@@ -191,7 +200,7 @@ def stage_evaluate(run: FitRun) -> bool:
         for stem in run.stems:
             per_shape[stem] = evaluate_shape(run.model.shape(stem), load_mesh(run.mesh_paths[stem]), ev)
         metrics = {"train": summarise(per_shape), "per_shape": per_shape,
-                   "command": f"zoo fit-category {run.category.name} --preset {run.preset.name}",
+                   "command": f"zoo fit-category {run.category.name} {run.preset.options}",
                    "evaluation": ev.to_dict()}
         with atomic_path(out) as tmp:
             Path(tmp).write_text(json.dumps(metrics, indent=1, sort_keys=True))
@@ -271,15 +280,19 @@ def add_stage(name: str, fn: StageFn, before: str = "package") -> None:
 
 def fit_category(category: str, data_dir: str | os.PathLike | None = None, preset: str = "default",
                  out_dir: str | os.PathLike | None = None, work_dir: str | os.PathLike | None = None,
-                 device: str = "cpu", progress: bool = True, log: Callable[[str], None] = print) -> FitRun:
+                 device: str = "cpu", progress: bool = True, log: Callable[[str], None] = print,
+                 steps: int | None = None) -> FitRun:
     """Run every stage of :data:`STAGES` for ``category``; return the finished run (``run.model``, ``run.out_dir``).
 
-    Defaults: ``out_dir`` = out/CATEGORY, ``work_dir`` = runs/CATEGORY (caches, checkpoints).
+    Defaults: ``out_dir`` = out/CATEGORY, ``work_dir`` = runs/CATEGORY (caches, checkpoints); ``steps`` replaces
+    the preset's training length.
     """
     from .categories import load_category, resolve_data_dir
 
     cat = load_category(category)
     p = PRESETS.lookup(preset)
+    if steps is not None:
+        p = replace(p, steps=int_at_least(steps, "steps", 1))
     run = FitRun(cat, resolve_data_dir(data_dir, cat), Path(work_dir or Path("runs") / cat.name),
                  Path(out_dir or Path("out") / cat.name), p, device=device, progress=progress, log=log)
     for name, fn in STAGES:

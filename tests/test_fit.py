@@ -122,3 +122,16 @@ def test_fit_category_quick_survives_kill_9(tmp_path):
     shape = model.shape(model.shapes[0])
     d = shape(torch.zeros(5, 3))
     assert d.shape == (5,) and torch.isfinite(d).all()
+
+
+def test_steps_option_replaces_the_presets_training_length_and_is_recorded():
+    from pipeline.fit_category import PRESETS, fit_category
+    from zoo.errors import InputError
+
+    default = PRESETS.lookup("default")
+    longer = replace(default, steps=123)
+    assert default.fit_config(54).steps == 2000 and longer.fit_config(54).steps == 123  # scaled by shapes, then replaced
+    assert longer.fit_config(4).steps == 123
+    assert (default.options, longer.options) == ("--preset default", "--preset default --steps 123")
+    with pytest.raises(InputError, match="steps"):
+        fit_category("mugs", preset="quick", steps=0)
