@@ -362,9 +362,6 @@ def add_contacts(model, data, rows: ContactRows, friction: float, solref, solimp
     sl = slice(start, start + added)
     view.pos[sl] = rows.pos[:added]
     view.dist[sl] = rows.dist[:added]
-    # a speculative contact (not touching yet) is normal-only: friction rows on it would brake a sliding body at a
-    # distance (a gear's back flank 0.3 mm away held the driven gear), as MuJoCo's own in-gap contacts are
-    view.dim[sl] = np.where(rows.dist[:added] > 0, 1, template.dim)
     view.frame[sl] = rows.frame[:added]
     view.geom[sl] = rows.geom[:added]
     view.geom1[sl] = rows.geom[:added, 0]
