@@ -54,6 +54,8 @@ def test_coherent_simulation_follows_the_from_scratch_ones(monkeypatch):
         ends[label] = sim.pose("mug")[:3, 3]
         if label == "coherent":
             stats = sim.collider_stats()
-            assert stats.reused > 3 * (stats.warm + stats.cold), stats  # a hanging mug keeps most answers
+            # a hanging mug keeps most answers: 2.5 kept per solved face at b612771 (3.2 while separated contacts
+            # also damped its rest, before 0bb3ce7); the speed this buys is zoo bench --sim's check_mug_hanging
+            assert stats.reused > 2 * (stats.warm + stats.cold), stats
     for label in ("scratch", "fw"):
         assert np.linalg.norm(ends[label] - ends["coherent"]) < 2e-3, (label, ends)
