@@ -31,6 +31,7 @@ def test_teeth_counted_on_the_industreal_gears(meshes):
     assert teeth == {"large": 60, "medium": 40, "small": 20}  # module 1 mm: pitch radii 30, 20 and 10 mm
 
 
+@pytest.mark.slow  # exact distances of 3 x 3 x 40,000 points to the large gear's mesh: 15-50 s
 @needs_meshes
 def test_gear_meshes_turn_in_mesh_with_backlash_at_their_assembly_pose(meshes):
     from benches.gear_clearance import clearance
