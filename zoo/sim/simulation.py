@@ -271,10 +271,6 @@ class Simulation:
                 continue
             contacts, keep, arrays = found
             raw += len(contacts)
-            keep = keep[closing_in_time(*(a[keep] for a in arrays), self._motion(sdf_body), self._motion(mesh_body),
-                                        self.dt, SPECULATIVE_FACTOR)]
-            if len(keep) == 0:
-                continue
             rows.append(contact_rows(arrays, keep, (sdf_body.geom_id, mesh_body.geom_id)))
             collected.append(_select(contacts, keep))
         return rows, raw, used, speculative, collected
@@ -313,7 +309,11 @@ class Simulation:
         if contacts is None:
             return None
         points, depths, normals = as_numpy(contacts)
-        keep = np.nonzero(facing_faces(normals, faces_world, depths))[0]
+        # the contacts MuJoCo can use, before the reduction picks among them: facing their faces, and touching or
+        # closing within the step (a separated one beyond that would only brake the bodies at a distance)
+        usable = facing_faces(normals, faces_world, depths) & closing_in_time(
+            points, depths, normals, self._motion(sdf_body), self._motion(mesh_body), self.dt, SPECULATIVE_FACTOR)
+        keep = np.nonzero(usable)[0]
         if self.reduce and len(keep):
             merge = MERGE_FRACTION * float((hi - lo).min())
             keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
