@@ -352,7 +352,7 @@ def _gripper_carried(sim, trace, extra) -> dict:
             "surface_y": extra["surface_y"], "passed": bool(rise > 0.008 and shift > 0.008 and slip < 0.002)}
 
 
-NATIVE_GRIP_XML = """<mujoco><option timestep="0.002" integrator="implicitfast"/><default><geom solref="0.01 1"/></default>
+NATIVE_GRIP_XML = """<mujoco><option timestep="0.002" integrator="implicitfast" cone="{cone}" impratio="{impratio:.17g}"/><default><geom solref="0.01 1"/></default>
 <worldbody><geom type="plane" size="1 1 0.1"/>
 <body name="mug" pos="0 0 0.0405"><freejoint/><geom type="box" size="0.04 0.04 0.04" mass="0.2"/></body>
 <body name="left_finger" pos="0 0.048 0.05"><freejoint/><geom type="box" size="0.01 0.005 0.02" mass="1"/></body>
@@ -360,13 +360,26 @@ NATIVE_GRIP_XML = """<mujoco><option timestep="0.002" integrator="implicitfast"/
 </worldbody></mujoco>"""
 
 
-def native_grip() -> dict:
+def native_grip_xml(cone: str = "pyramidal", impratio: float = 1.0) -> str:
+    """The native grip's MJCF (:func:`native_grip`) with MuJoCo's friction cone and impratio."""
+    return NATIVE_GRIP_XML.format(cone=cone, impratio=float(impratio))
+
+
+def gripper_friction_settings() -> dict:
+    """The gripper scene's friction cone and impratio (MuJoCo's defaults where it sets none)."""
+    from zoo.scenes import read_scene
+
+    solver = read_scene(SCENES / SCENARIOS["gripper-mug"].scene)[0].get("sim", {})
+    return {"cone": solver.get("cone", "pyramidal"), "impratio": float(solver.get("impratio", 1.0))}
+
+
+def native_grip(cone: str = "pyramidal", impratio: float = 1.0) -> dict:
     """The gripper's prescribed motion on MuJoCo's own contacts: an 8 cm, 0.2 kg box between two box
     fingers closing 1.5 mm into it (same phases, gravity compensation and friction 1), no sdfzoo.
     Tells the contact pipeline's slip from the control scheme's."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_string(NATIVE_GRIP_XML)
+    model = mujoco.MjModel.from_xml_string(native_grip_xml(cone, impratio))
     data = mujoco.MjData(model)
     joints = {f: (model.jnt_qposadr[model.body(f).jntadr[0]], model.jnt_dofadr[model.body(f).jntadr[0]]) for f in FINGERS}
     pad_y = {"left_finger": (0.048, 0.045 - SQUEEZE), "right_finger": (-0.048, -0.045 + SQUEEZE)}  # pad centres
@@ -386,8 +399,8 @@ def native_grip() -> dict:
             data.qvel[dadr:dadr + 6] = np.concatenate([vel, np.zeros(3)])
         mujoco.mj_step(model, data)
     rise, shift = float(data.qpos[2]) - start, float(data.qpos[0])
-    return {"scenario": "native-grip", "mug_rise_mm": 1e3 * rise, "mug_shift_mm": 1e3 * shift,
-            "finger_rise_mm": 1e3 * LIFT[2], "finger_shift_mm": 1e3 * CARRY[0]}
+    return {"scenario": "native-grip", "cone": cone, "impratio": float(impratio), "mug_rise_mm": 1e3 * rise,
+            "mug_shift_mm": 1e3 * shift, "finger_rise_mm": 1e3 * LIFT[2], "finger_shift_mm": 1e3 * CARRY[0]}
 
 
 SCENARIOS = {
@@ -412,7 +425,7 @@ def main(argv=None) -> None:
     if not args.scene and not args.native_grip:
         parser.error("name a --scene (or --native-grip)")
     if args.native_grip:
-        print(json.dumps(native_grip()), flush=True)
+        print(json.dumps(native_grip(**gripper_friction_settings())), flush=True)
     for name in args.scene:
         result = run(name, args.seconds, args.out)
         summary = {k: result[k] for k in ("scenario", "passed", "steps", "wall_s", "steps_per_s", "max_penetration_mm", "max_contacts")}

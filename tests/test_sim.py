@@ -164,6 +164,10 @@ def test_slide_with_a_motor_and_mass_from_the_sdf():
 def test_bad_arguments_raise_typed_errors():
     with pytest.raises(InputError, match="RK4"):
         zoo.sim.Simulation(integrator="rk4")
+    with pytest.raises(InputError, match="friction cone"):
+        zoo.sim.Simulation(cone="round")
+    with pytest.raises(InputError, match="impratio"):
+        zoo.sim.Simulation(impratio=0.5)
     sim = zoo.sim.Simulation()
     with pytest.raises(InputError, match="joint"):
         sim.add_body("a", sdf=zoo.Sphere(radius=0.1), joint="ball")

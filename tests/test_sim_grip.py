@@ -16,7 +16,7 @@ trimesh = pytest.importorskip("trimesh")
 
 import zoo  # noqa: E402
 import zoo.sim  # noqa: E402
-from benches.sim_scenarios import FINGERS, NATIVE_GRIP_XML, PHASES, SQUEEZE, _finger_offset, native_grip  # noqa: E402
+from benches.sim_scenarios import FINGERS, PHASES, SQUEEZE, _finger_offset, native_grip, native_grip_xml  # noqa: E402
 from zoo.sim.contacts import ContactRows, add_contacts  # noqa: E402
 
 DT = 0.002
@@ -41,7 +41,7 @@ def _prescribe(qpos, qvel, qadr: int, dadr: int, finger: str, t: float) -> None:
 def _native_box_z(readd: bool) -> np.ndarray:
     """The box's height at every step of the native grip; ``readd``: MuJoCo's contacts cleared after mj_step1
     and appended again by add_contacts, the constraint stage rebuilt as zoo.sim's step does, then mj_step2."""
-    model = mujoco.MjModel.from_xml_string(NATIVE_GRIP_XML)
+    model = mujoco.MjModel.from_xml_string(native_grip_xml())
     data = mujoco.MjData(model)
     joints = {f: (model.jnt_qposadr[model.body(f).jntadr[0]], model.jnt_dofadr[model.body(f).jntadr[0]]) for f in FINGERS}
     for f in FINGERS:
@@ -82,10 +82,10 @@ def _box_mesh(half) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces)
 
 
-def test_sdf_box_lifted_by_mesh_fingers_rises_as_native():
-    """An 8 cm, 0.2 kg zoo.Box squeezed 1.5 mm by two 1 kg box-mesh fingers, lifted 1 cm and carried 1 cm with
-    friction 1: it rises and moves within 0.5 mm of MuJoCo's own box (8.4 and 9.8 mm)."""
-    sim = zoo.sim.Simulation(dt=DT, friction=1.0, solref=(0.01, 1.0))
+def _sdf_box_lifted_by_mesh_fingers(**friction_settings) -> tuple[float, float]:
+    """(rise, shift) in mm of an 8 cm, 0.2 kg zoo.Box squeezed 1.5 mm by two 1 kg box-mesh fingers, lifted 1 cm
+    and carried 1 cm with friction 1 (native_grip's motion), in zoo.sim."""
+    sim = zoo.sim.Simulation(dt=DT, friction=1.0, solref=(0.01, 1.0), **friction_settings)
     pose = np.eye(4)
     pose[2, 3] = HALF + 5e-4
     sim.add_body("box", sdf=zoo.Box(half_extents=(HALF, HALF, HALF)), mass=0.2, inertia=np.full(3, 0.2 * (2 * HALF) ** 2 / 6), pose=pose)
@@ -108,8 +108,30 @@ def test_sdf_box_lifted_by_mesh_fingers_rises_as_native():
             body = sim.bodies[finger]
             _prescribe(d.qpos, d.qvel, body.qpos_adr, body.dof_adr, finger, sim.time + DT)
         sim.step()
-    rise, shift = 1e3 * (sim.pose("box")[2, 3] - start[2]), 1e3 * (sim.pose("box")[0, 3] - start[0])
+    assert not sim.warnings, sim.warnings
+    return 1e3 * (sim.pose("box")[2, 3] - start[2]), 1e3 * (sim.pose("box")[0, 3] - start[0])
+
+
+def _slip(rise: float, shift: float) -> float:
+    return float(np.hypot(rise - 10.0, shift - 10.0))
+
+
+def test_sdf_box_lifted_by_mesh_fingers_rises_as_native():
+    """Under MuJoCo's default friction (pyramidal cone, impratio 1) the box rises and moves within 0.5 mm of
+    MuJoCo's own box (8.4 and 9.8 mm)."""
+    rise, shift = _sdf_box_lifted_by_mesh_fingers()
     native = native_grip()
     assert abs(rise - native["mug_rise_mm"]) < 0.5, (rise, native)
     assert abs(shift - native["mug_shift_mm"]) < 0.5, (shift, native)
-    assert not sim.warnings, sim.warnings
+
+
+def test_grasping_friction_settings_reach_the_solver_and_hold_the_box_as_native():
+    """MuJoCo's grasping settings (elliptic cone, impratio 10, as the gripper scene sets them) reach the solver
+    through Simulation: the box slips less than under the defaults and stays within 0.5 mm of MuJoCo's own box
+    under the same settings."""
+    settings = {"cone": "elliptic", "impratio": 10.0}
+    rise, shift = _sdf_box_lifted_by_mesh_fingers(**settings)
+    native = native_grip(**settings)
+    assert abs(rise - native["mug_rise_mm"]) < 0.5, (rise, native)
+    assert abs(shift - native["mug_shift_mm"]) < 0.5, (shift, native)
+    assert _slip(rise, shift) < _slip(*_sdf_box_lifted_by_mesh_fingers()) - 0.05

@@ -202,11 +202,11 @@ def _actuator_xml(body: Body) -> str:
     raise InputError(f"body {body.name!r}: unknown drive type {kind!r}; use one of {DRIVES}")
 
 
-def mjcf(bodies: list[Body], dt: float, gravity, integrator: str) -> str:
+def mjcf(bodies: list[Body], dt: float, gravity, integrator: str, cone: str = "pyramidal", impratio: float = 1.0) -> str:
     """The MJCF text of a simulation's bodies (fixed bodies are welded to the world)."""
     actuators = "\n".join(a for a in (_actuator_xml(b) for b in bodies) if a)
     return f"""<mujoco model="zoo.sim">
-<option timestep="{dt:.17g}" gravity="{mjcf_vector(gravity)}" integrator="{integrator}">
+<option timestep="{dt:.17g}" gravity="{mjcf_vector(gravity)}" integrator="{integrator}" cone="{cone}" impratio="{impratio:.17g}">
   <flag energy="enable"/>
 </option>
 <size memory="256M"/>
@@ -220,11 +220,11 @@ def mjcf(bodies: list[Body], dt: float, gravity, integrator: str) -> str:
 </mujoco>"""
 
 
-def build_model(bodies: list[Body], dt: float, gravity, integrator: str):
+def build_model(bodies: list[Body], dt: float, gravity, integrator: str, cone: str = "pyramidal", impratio: float = 1.0):
     """(MjModel, MjData) of ``bodies``; fills each body's ids and sets initial velocities and drive targets."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_string(mjcf(bodies, dt, gravity, integrator))
+    model = mujoco.MjModel.from_xml_string(mjcf(bodies, dt, gravity, integrator, cone, impratio))
     data = mujoco.MjData(model)
     for body in bodies:
         body.body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body.name)

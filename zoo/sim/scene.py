@@ -13,6 +13,8 @@ friction = 1.0
 solref = [0.02, 1.0]
 solimp = [0.9, 0.95, 0.001, 0.5, 2.0]
 integrator = "implicitfast"     # or "euler"
+cone = "pyramidal"              # MuJoCo's friction cone, or "elliptic"; with impratio = 10 for a grasp
+impratio = 1.0
 coherence = true                # carry bounds and answers from step to step (zoo.CoherentCollider)
 
 [[bodies]]
@@ -46,7 +48,7 @@ from ..errors import InputError
 from ..scenes import _build_mesh, _build_sdf, pose_matrix, read_scene
 from .simulation import Simulation
 
-SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "sdf_mass", "drop", "reduce", "refine", "coherence"}
+SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "cone", "impratio", "sdf_mass", "drop", "reduce", "refine", "coherence"}
 SCENE_ONLY = ("seconds", "drop", "sdf_mass")  # [sim] keys that are not Simulation's arguments
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
 
@@ -73,6 +75,7 @@ def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Sim
         "method": spec.get("method", "amortized"), "margin": float(spec.get("margin", 1e-3)),
         "friction": sim_spec.get("friction", 1.0), "solref": sim_spec.get("solref", (0.02, 1.0)),
         "solimp": sim_spec.get("solimp", (0.9, 0.95, 0.001, 0.5, 2.0)), "integrator": sim_spec.get("integrator", "implicitfast"),
+        "cone": sim_spec.get("cone", "pyramidal"), "impratio": sim_spec.get("impratio", 1.0),
         "reduce": sim_spec.get("reduce", True), "refine": sim_spec.get("refine", True),
         "coherence": sim_spec.get("coherence", True),
     }

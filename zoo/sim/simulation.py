@@ -51,6 +51,7 @@ from .model import (
 )
 
 INTEGRATORS = {"implicitfast": "implicitfast", "euler": "Euler"}
+CONES = ("pyramidal", "elliptic")
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
 # copies of a vertex's contact by up to a tenth of the edge: 3 mm on 3 cm triangles)
 MERGE_FRACTION = 0.05
@@ -107,6 +108,9 @@ class Simulation:
         friction: Coulomb friction of every contact.
         solref, solimp: MuJoCo's contact softness, for every contact.
         integrator: "implicitfast" or "euler" (RK4 would recompute collision and lose the contacts).
+        cone, impratio: MuJoCo's friction cone ("pyramidal" or "elliptic") and the ratio of its frictional to
+            normal constraint impedance. MuJoCo's defaults (pyramidal, 1) let a grasped object creep under its
+            soft friction; a grasp wants MuJoCo's own grasping settings, elliptic and 10.
         coherence: carry each pair's bounds and answers from step to step (:class:`zoo.CoherentCollider`):
             triangles proven to stay above the margin are skipped, persisting contacts warm-started.
             False collides every pair from scratch with ``zoo.collide``.
@@ -126,7 +130,8 @@ class Simulation:
 
     def __init__(self, dt: float = 0.002, gravity=(0.0, 0.0, -9.81), method: str = "amortized", margin: float = 1e-3,
                  friction: float = 1.0, solref=(0.02, 1.0), solimp=(0.9, 0.95, 0.001, 0.5, 2.0),
-                 integrator: str = "implicitfast", coherence: bool = True, reduce: bool = True, refine: bool = True):
+                 integrator: str = "implicitfast", cone: str = "pyramidal", impratio: float = 1.0, coherence: bool = True,
+                 reduce: bool = True, refine: bool = True):
         if not (dt > 0 and math.isfinite(dt)):
             raise InputError(f"dt must be positive, got {dt}")
         if integrator.lower() not in INTEGRATORS:
@@ -135,9 +140,14 @@ class Simulation:
             raise InputError(f"margin must be >= 0, got {margin}")
         if not (friction >= 0 and math.isfinite(friction)):
             raise InputError(f"friction must be >= 0, got {friction}")
+        if cone not in CONES:
+            raise InputError(f"cone {cone!r} is not a friction cone; use one of {CONES}")
+        if not (impratio >= 1 and math.isfinite(impratio)):
+            raise InputError(f"impratio must be a number >= 1 (MuJoCo's default is 1), got {impratio}")
         self.dt, self.gravity, self.method, self.margin = float(dt), tuple(float(g) for g in gravity), method, float(margin)
         self.friction, self.solref, self.solimp = float(friction), tuple(solref), tuple(solimp)
         self.integrator, self.coherence = INTEGRATORS[integrator.lower()], coherence
+        self.cone, self.impratio = cone, float(impratio)
         self.reduce, self.refine = reduce, refine
         self.bodies: dict[str, Body] = {}
         self.log: list[StepRecord] = []
@@ -193,7 +203,8 @@ class Simulation:
     def _build(self):
         import mujoco
 
-        self.model, self.data = build_model(list(self.bodies.values()), self.dt, self.gravity, self.integrator)
+        self.model, self.data = build_model(list(self.bodies.values()), self.dt, self.gravity, self.integrator,
+                                              self.cone, self.impratio)
         if self.model.nv == 0:
             raise InputError("nothing moves: every body is fixed; give one a free, hinge or slide joint")
         self._warnings_seen = np.array([w.number for w in self.data.warning])
