@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from real_meshes import SKIP_REASON, zoo_data
 
 pytest.importorskip("mujoco")
@@ -158,3 +159,39 @@ def test_gripper_motion_lifts_a_box_on_mujocos_own_contacts():
 
     result = native_grip()
     assert result["mug_rise_mm"] > 8.0 and result["mug_shift_mm"] > 9.5, result
+
+
+def test_face_shapes_of_a_sliver_and_a_right_triangle():
+    from benches.contact_faces import face_shapes
+
+    triangles = np.array([[[0, 0, 0], [3, 0, 0], [0, 4, 0]], [[0, 0, 0], [20, 0, 0], [10, 0.1, 0]]], dtype=np.float64)
+    widths, longest = face_shapes(triangles)
+    np.testing.assert_allclose(longest, [5.0, 20.0])
+    np.testing.assert_allclose(widths, [2 * 6.0 / 5.0, 0.1])  # twice the area over the longest edge: the height on it
+
+
+def test_faces_counted_within_the_margin_are_those_a_brute_force_search_finds():
+    """benches/contact_faces.py's count of the faces a step must answer, on the bottle resting in the holder (bundled
+    data), against the minimum of the bottle's SDF over a barycentric grid of every face of the holder's mesh."""
+    from benches.contact_faces import faces_within_margin, simulated
+    from zoo.geometry import barycentric_grid
+
+    sim = simulated("bottle-holder", 45)  # landed at step 38
+    contacts = faces_within_margin(sim, "bottle", "holder")
+    pair = sim._pair_meshes[("bottle", "holder")]
+    sdf_from_mesh = np.linalg.inv(sim.pose("bottle")) @ sim.pose("holder")
+    local = pair.vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
+    triangles = torch.as_tensor(local[pair.faces])
+    grid = barycentric_grid(24, dtype=torch.float64)
+    near = np.nonzero(np.linalg.norm(local[pair.faces].mean(axis=1), axis=1) < 1.0)[0]  # the bottle is 0.5 units tall
+    with torch.no_grad():
+        values = sim.bodies["bottle"].sdf(torch.einsum("gv,fvc->fgc", grid, triangles[near]).reshape(-1, 3).float())
+    brute = values.reshape(len(near), -1).amin(dim=1).double().numpy()
+    edge = np.linalg.norm(local[pair.faces[near]][:, [1, 2, 0]] - local[pair.faces[near]], axis=-1).max(axis=1)
+    slack = 2.0 * edge / 24  # the SDF's Lipschitz bound for a NeuralSDF times the grid's spacing
+    found = set(np.asarray(contacts.triangles).tolist())
+    assert len(found) > 0
+    must = near[brute <= sim.margin - 1e-4]  # clearly within the margin on the grid alone
+    assert set(must.tolist()) <= found
+    may = set(near[brute - slack <= sim.margin + 1e-4].tolist())
+    assert found <= may

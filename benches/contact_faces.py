@@ -1,0 +1,101 @@
+"""The faces a simulation step must answer: how many of a scenario's mesh faces lie within the margin, and their shape.
+
+Runs a scenario of benches/sim_scenarios.py (its scene, control and default settings) for ``--steps``
+steps, then collides each (SDF body, mesh body) pair's mesh as the simulation holds it (refined once at
+build) with ``zoo.collide`` from scratch at that pose, and prints per pair: the mesh's faces, those whose
+minimum lies within the margin (the contacts any method must find), their depths and their widths
+(twice the area over the longest edge) and lengths. A profile of what a step costs, not a timing:
+
+    python -m benches.contact_faces --scene mug-rack --steps 80
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import numpy as np
+import torch
+
+PERCENTILES = (0, 10, 50, 90, 100)
+
+
+def face_shapes(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(widths (F,), longest edges (F,)) of the triangles (F, 3, 3): a sliver is narrow and long."""
+    edges = np.linalg.norm(triangles[:, [1, 2, 0]] - triangles, axis=-1)
+    longest = edges.max(axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+    return 2.0 * area / np.maximum(longest, 1e-300), longest
+
+
+def _mm_percentiles(values: np.ndarray) -> dict:
+    return {f"p{q}": round(1e3 * float(np.percentile(values, q)), 4) for q in PERCENTILES} if len(values) else {}
+
+
+def simulated(name: str, steps: int):
+    """Scenario ``name``'s simulation (its scene, control and default settings) after ``steps`` steps."""
+    import zoo.sim
+    from benches.sim_scenarios import SCENARIOS, SCENES
+
+    scenario = SCENARIOS[name]
+    sim = zoo.sim.load_scene(SCENES / scenario.scene)
+    sim.build()
+    extra = scenario.prepare(sim) or {}
+    for _ in range(steps):
+        if scenario.control is not None:
+            scenario.control(sim, extra)
+        sim.step()
+    return sim
+
+
+def faces_within_margin(sim, sdf_name: str, mesh_name: str):
+    """``zoo.collide``'s contacts (amortized, from scratch, at ``sim``'s margin) of the pair's mesh as the
+    simulation holds it (refined once at build), at the current poses; None where the pair is refined near
+    the SDF at every step instead (no fixed mesh)."""
+    import zoo
+
+    pair = sim._pair_meshes[(sdf_name, mesh_name)]
+    if pair is None:
+        return None
+    mesh = (torch.as_tensor(pair.vertices, dtype=torch.float32), torch.as_tensor(pair.faces))
+    return zoo.collide(sim.bodies[sdf_name].sdf, mesh, sdf_pose=torch.from_numpy(sim.pose(sdf_name)),
+                       mesh_pose=torch.from_numpy(sim.pose(mesh_name)), margin=sim.margin, method="amortized")
+
+
+def contact_faces(name: str, steps: int) -> list[dict]:
+    """Per mesh pair of scenario ``name`` after ``steps`` steps: the faces within the margin (see the module docstring)."""
+    sim = simulated(name, steps)
+    rows = []
+    for (sdf_name, mesh_name), pair in sim._pair_meshes.items():
+        contacts = faces_within_margin(sim, sdf_name, mesh_name)
+        if contacts is None:
+            continue
+        faces = np.asarray(contacts.triangles)
+        widths, lengths = face_shapes(pair.vertices[pair.faces[faces]])
+        rows.append({
+            "pair": [sdf_name, mesh_name], "step": steps, "margin_mm": 1e3 * sim.margin,
+            "mesh_faces": len(pair.faces), "own_faces": len(sim.bodies[mesh_name].mesh[1]),
+            "within_margin": len(faces), "own_faces_within_margin": len(np.unique(pair.origin[faces])),
+            "depth_mm": _mm_percentiles(np.asarray(contacts.depths)),
+            "width_mm": _mm_percentiles(widths), "longest_edge_mm": _mm_percentiles(lengths),
+        })
+    return rows
+
+
+def main(argv=None) -> None:
+    from benches.sim_scenarios import SCENARIOS
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", choices=sorted(SCENARIOS), required=True)
+    parser.add_argument("--steps", type=int, default=80, help="steps simulated before counting (default 80)")
+    args = parser.parse_args(argv)
+    if not os.environ.get("ZOO_DATA"):
+        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    torch.set_num_threads(1)
+    for row in contact_faces(args.scene, args.steps):
+        print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()
