@@ -208,6 +208,7 @@ def test_zoo_simulate_writes_trajectory_stats_and_plot(tmp_path):
     with h5py.File(tmp_path / "ring-rack.h5") as f:
         assert f["bodies/sdf/pose"].shape == (10, 4, 4)
         assert f.attrs["method"] == "fw" and len(f.attrs["scene_sha256"]) == 64 and f.attrs["dt"] == 0.002
+        assert f.attrs["cone"] == "pyramidal" and f.attrs["impratio"] == 1.0  # MuJoCo's defaults: the scene sets neither
     stats = json.loads((tmp_path / "ring-rack.json").read_text())
     assert len(stats["steps"]) == 10 and stats["summary"]["finite"]
     assert (tmp_path / "ring-rack.png").stat().st_size > 0

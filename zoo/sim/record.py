@@ -141,5 +141,5 @@ def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
         "scene": str(scene_path) if scene_path else "", "scene_sha256": sha256_file(scene_path) if scene_path else "",
         "bodies": json.dumps(getattr(sim, "labels", {})), "method": sim.method, "dt": sim.dt, "margin": sim.margin,
         "friction": sim.friction, "solref": json.dumps(list(sim.solref)), "integrator": sim.integrator,
-        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "cone": sim.cone, "impratio": sim.impratio, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
