@@ -168,6 +168,8 @@ def test_bad_arguments_raise_typed_errors():
         zoo.sim.Simulation(cone="round")
     with pytest.raises(InputError, match="impratio"):
         zoo.sim.Simulation(impratio=0.5)
+    with pytest.raises(InputError, match="impratio"):
+        zoo.sim.Simulation(impratio="ten")
     sim = zoo.sim.Simulation()
     with pytest.raises(InputError, match="joint"):
         sim.add_body("a", sdf=zoo.Sphere(radius=0.1), joint="ball")

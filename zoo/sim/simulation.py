@@ -27,7 +27,7 @@ import zoo
 
 from ..errors import InputError
 from ..geometry import invert_pose
-from ..validation import as_pose
+from ..validation import as_pose, float_in
 from .contacts import (
     REFINE_CELLS,
     add_contacts,
@@ -142,12 +142,11 @@ class Simulation:
             raise InputError(f"friction must be >= 0, got {friction}")
         if cone not in CONES:
             raise InputError(f"cone {cone!r} is not a friction cone; use one of {CONES}")
-        if not (impratio >= 1 and math.isfinite(impratio)):
-            raise InputError(f"impratio must be a number >= 1 (MuJoCo's default is 1), got {impratio}")
+        impratio = float_in(impratio, "impratio (MuJoCo's default is 1)", 1.0, math.inf, high_open=True)
         self.dt, self.gravity, self.method, self.margin = float(dt), tuple(float(g) for g in gravity), method, float(margin)
         self.friction, self.solref, self.solimp = float(friction), tuple(solref), tuple(solimp)
         self.integrator, self.coherence = INTEGRATORS[integrator.lower()], coherence
-        self.cone, self.impratio = cone, float(impratio)
+        self.cone, self.impratio = cone, impratio
         self.reduce, self.refine = reduce, refine
         self.bodies: dict[str, Body] = {}
         self.log: list[StepRecord] = []
