@@ -35,17 +35,11 @@ def _mm_percentiles(values: np.ndarray) -> dict:
 
 def simulated(name: str, steps: int):
     """Scenario ``name``'s simulation (its scene, control and default settings) after ``steps`` steps."""
-    import zoo.sim
-    from benches.sim_scenarios import SCENARIOS, SCENES
+    from benches.sim_scenarios import advance, start
 
-    scenario = SCENARIOS[name]
-    sim = zoo.sim.load_scene(SCENES / scenario.scene)
-    sim.build()
-    extra = scenario.prepare(sim) or {}
+    scenario, sim, extra = start(name)
     for _ in range(steps):
-        if scenario.control is not None:
-            scenario.control(sim, extra)
-        sim.step()
+        advance(scenario, sim, extra)
     return sim
 
 

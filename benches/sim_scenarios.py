@@ -92,25 +92,35 @@ class Scenario:
     control: Callable | None = None  # (sim, extra) before every step: prescribed motions
 
 
+def start(name: str):
+    """(the Scenario, its scene's Simulation built, what its ``prepare`` computed) of scenario ``name``."""
+    import zoo.sim
+
+    scenario = SCENARIOS[name]
+    sim = zoo.sim.load_scene(SCENES / scenario.scene)
+    sim.build()  # joint addresses, initial kinematics
+    return scenario, sim, scenario.prepare(sim) or {}
+
+
+def advance(scenario: Scenario, sim, extra: dict) -> None:
+    """One step of the scenario: its control (if any), then the simulation's step."""
+    if scenario.control is not None:
+        scenario.control(sim, extra)
+    sim.step()
+
+
 def run(name: str, seconds: float | None = None, out: Path | None = None) -> dict:
     """Simulate scenario ``name`` (its scene's seconds unless given) and compute its check; write
     ``out/<name>.json`` when ``out`` is given. Returns the result (check, timings, penetration)."""
-    import zoo.sim
-
     if not os.environ.get("ZOO_DATA"):
         raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
-    scenario = SCENARIOS[name]
+    scenario, sim, extra = start(name)
     path = SCENES / scenario.scene
-    sim = zoo.sim.load_scene(path)
-    sim.build()  # joint addresses, initial kinematics
     seconds = sim.seconds if seconds is None else seconds
-    extra = scenario.prepare(sim) or {}
     trace = [{"time": sim.time, "contacts": 0, "penetration_mm": 0.0, **scenario.record(sim)}]
     started = time.perf_counter()
     for _ in range(int(round(seconds / sim.dt))):
-        if scenario.control is not None:
-            scenario.control(sim, extra)
-        sim.step()
+        advance(scenario, sim, extra)
         step = sim.log[-1]
         trace.append({"time": sim.time, "contacts": step.contacts, "penetration_mm": 1e3 * step.max_penetration, **scenario.record(sim)})
     wall = time.perf_counter() - started
@@ -366,11 +376,12 @@ def native_grip_xml(cone: str = "pyramidal", impratio: float = 1.0) -> str:
 
 
 def gripper_friction_settings() -> dict:
-    """The gripper scene's friction cone and impratio (MuJoCo's defaults where it sets none)."""
+    """The gripper scene's friction cone and impratio (as its simulation gets them)."""
     from zoo.scenes import read_scene
+    from zoo.sim.scene import simulation_settings
 
-    solver = read_scene(SCENES / SCENARIOS["gripper-mug"].scene)[0].get("sim", {})
-    return {"cone": solver.get("cone", "pyramidal"), "impratio": float(solver.get("impratio", 1.0))}
+    settings = simulation_settings(read_scene(SCENES / SCENARIOS["gripper-mug"].scene)[0])
+    return {"cone": settings["cone"], "impratio": float(settings["impratio"])}
 
 
 def native_grip(cone: str = "pyramidal", impratio: float = 1.0) -> dict:

@@ -202,7 +202,7 @@ def _actuator_xml(body: Body) -> str:
     raise InputError(f"body {body.name!r}: unknown drive type {kind!r}; use one of {DRIVES}")
 
 
-def mjcf(bodies: list[Body], dt: float, gravity, integrator: str, cone: str = "pyramidal", impratio: float = 1.0) -> str:
+def mjcf(bodies: list[Body], dt: float, gravity, integrator: str, cone: str, impratio: float) -> str:
     """The MJCF text of a simulation's bodies (fixed bodies are welded to the world)."""
     actuators = "\n".join(a for a in (_actuator_xml(b) for b in bodies) if a)
     return f"""<mujoco model="zoo.sim">
@@ -220,7 +220,7 @@ def mjcf(bodies: list[Body], dt: float, gravity, integrator: str, cone: str = "p
 </mujoco>"""
 
 
-def build_model(bodies: list[Body], dt: float, gravity, integrator: str, cone: str = "pyramidal", impratio: float = 1.0):
+def build_model(bodies: list[Body], dt: float, gravity, integrator: str, cone: str, impratio: float):
     """(MjModel, MjData) of ``bodies``; fills each body's ids and sets initial velocities and drive targets."""
     import mujoco
 

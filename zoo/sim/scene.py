@@ -63,10 +63,10 @@ def load_scene(path: str | os.PathLike, **overrides) -> Simulation:
     return sim
 
 
-def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Simulation:
-    """A :class:`Simulation` from a scene's table (see the module docstring)."""
-    sim_spec = dict(spec.get("sim", {}))
-    sim_spec.update({k: overrides.pop(k) for k in SCENE_ONLY if overrides.get(k) is not None})
+def simulation_settings(spec: dict, **overrides) -> dict:
+    """:class:`Simulation`'s arguments from a scene's table (its [sim] values, defaults for the rest) and
+    ``overrides`` (None keeps the file's); [sim]'s seconds, drop and sdf_mass are not among them."""
+    sim_spec = spec.get("sim", {})
     unknown = set(sim_spec) - SIM_KEYS
     if unknown:
         raise InputError(f"unknown [sim] keys {sorted(unknown)}; known: {sorted(SIM_KEYS)}")
@@ -79,7 +79,15 @@ def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Sim
         "reduce": sim_spec.get("reduce", True), "refine": sim_spec.get("refine", True),
         "coherence": sim_spec.get("coherence", True),
     }
-    settings.update({k: v for k, v in overrides.items() if v is not None})
+    settings.update({k: v for k, v in overrides.items() if v is not None and k not in SCENE_ONLY})
+    return settings
+
+
+def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Simulation:
+    """A :class:`Simulation` from a scene's table (see the module docstring)."""
+    sim_spec = dict(spec.get("sim", {}))
+    sim_spec.update({k: overrides.pop(k) for k in SCENE_ONLY if overrides.get(k) is not None})
+    settings = simulation_settings({**spec, "sim": sim_spec}, **overrides)
     sim = Simulation(**settings)
     sim.name = spec.get("name", "scene")
     sim.seconds = float(sim_spec.get("seconds", 1.0))
