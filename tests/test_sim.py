@@ -16,7 +16,7 @@ import zoo  # noqa: E402
 import zoo.sim  # noqa: E402
 from benches import sim_check, stress_sim  # noqa: E402
 from zoo.errors import InputError  # noqa: E402
-from zoo.sim.contacts import bisect_to_size, closing_in_time, face_normals, reduce_contacts, refine_near  # noqa: E402
+from zoo.sim.contacts import closing_in_time, face_normals, reduce_contacts, refine_near, refine_to_size  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -102,16 +102,17 @@ def test_refine_clips_large_triangles_to_the_box():
     assert np.allclose(np.abs(face_normals(tri)[:, 2]), 1)
 
 
-def test_bisection_covers_each_face_with_pieces_no_longer_than_asked():
-    """bisect_to_size against the faces it came from: every piece lies in its origin face's plane and inside it
+def test_refinement_covers_each_face_with_pieces_no_longer_than_asked():
+    """refine_to_size against the faces it came from: every piece lies in its origin face's plane and inside it
     (barycentric coordinates of its corners >= 0), the pieces of a face add up to its area, no edge is longer than
     asked, orientation is kept; a budget too small gives None; a sliver gives fewer pieces than splitting every edge."""
     import trimesh
 
     mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.3)
     sliver = (np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.2, 0.002, 0.0]]), np.array([[0, 1, 2]]))
-    for v, f in ((np.asarray(mesh.vertices), np.asarray(mesh.faces)), sliver):
-        rv, rf, origin = bisect_to_size(v, f, 0.05, max_faces=100_000)
+    cylinder = trimesh.creation.cylinder(radius=0.01, height=0.2, sections=32)  # sides: slivers; caps: fans
+    for v, f in ((np.asarray(mesh.vertices), np.asarray(mesh.faces)), sliver, (np.asarray(cylinder.vertices), np.asarray(cylinder.faces))):
+        rv, rf, origin = refine_to_size(v, f, 0.05, max_faces=100_000)
         tri, source = rv[rf], v[f[origin]]
         assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max() <= 0.05 + 1e-12
         area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) / 2
@@ -125,8 +126,48 @@ def test_bisection_covers_each_face_with_pieces_no_longer_than_asked():
             uv = np.atleast_2d(uv)
             assert (uv >= -1e-9).all() and (uv.sum(axis=1) <= 1 + 1e-9).all()
     every_edge = trimesh.remesh.subdivide_to_size(*sliver, max_edge=0.05)[1]  # splitting all three edges each time
-    assert len(bisect_to_size(*sliver, 0.05, max_faces=100_000)[1]) < len(every_edge)
-    assert bisect_to_size(*sliver, 0.05, max_faces=4) is None
+    assert len(refine_to_size(*sliver, 0.05, max_faces=100_000)[1]) < len(every_edge)
+    assert refine_to_size(*sliver, 0.05, max_faces=4) is None
+
+
+def test_refinement_cuts_a_tessellated_cylinder_across_its_slivers():
+    """A finely tessellated cylinder (side faces 1 mm wide, 200 mm long) is cut across its length, not into
+    needles: each side face becomes a ladder of 2 n - 1 pieces as wide as the face, with n the fewest strips that
+    keep every edge within the bound, and the cut points are shared between neighbouring faces (the refined
+    mesh stays watertight, consistently wound, and encloses the same volume). Longest-edge bisection alone
+    makes twice as many pieces here."""
+    import trimesh
+
+    cylinder = trimesh.creation.cylinder(radius=0.02, height=0.2, sections=128)
+    v, f = np.asarray(cylinder.vertices), np.asarray(cylinder.faces)
+    rv, rf, origin = refine_to_size(v, f, 0.03, max_faces=100_000)
+    refined = trimesh.Trimesh(rv, rf, process=False)
+    assert refined.is_watertight and refined.is_winding_consistent
+    assert np.isclose(refined.volume, cylinder.volume, rtol=1e-9)
+    tri = v[f]
+    lengths = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)
+    side = lengths.max(axis=1) > 0.03
+    strips = np.ceil(lengths.max(axis=1) / (0.03 - lengths.min(axis=1))).astype(int)
+    pieces = np.bincount(origin, minlength=len(f))
+    assert side.sum() == 256 and (pieces[side] == 2 * strips[side] - 1).all() and (pieces[~side] == 1).all()
+    bisected = _longest_edge_bisection(v, f, 0.03)
+    assert bisected >= 2 * len(rf)
+
+
+def _longest_edge_bisection(v: np.ndarray, f: np.ndarray, max_edge: float) -> int:
+    """The number of faces longest-edge bisection alone makes of (v, f) (a naive, face-by-face count)."""
+    stack, count = [v[face] for face in f], 0
+    while stack:
+        tri = stack.pop()
+        lengths = np.linalg.norm(tri[[1, 2, 0]] - tri, axis=-1)
+        k = int(lengths.argmax())
+        if lengths[k] <= max_edge:
+            count += 1
+            continue
+        a, b, c = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
+        middle = (a + b) / 2
+        stack += [np.stack([a, middle, c]), np.stack([middle, b, c])]
+    return count
 
 
 # -- stiff and extreme cases (as `zoo stress --sim`) -------------------------------------------

@@ -90,15 +90,20 @@ def refine_near(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.
     return np.concatenate(parts_v), np.concatenate(parts_f), np.concatenate(parts_o)
 
 
-def bisect_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int
+def refine_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The mesh (vertices (V, 3), faces (F, 3)) with every face's longest edge halved until no edge exceeds ``max_edge``.
+    """The mesh (vertices (V, 3), faces (F, 3)) cut into faces with no edge longer than ``max_edge``.
 
-    Longest-edge bisection, not subdivision of every edge: a sliver 30 edges long becomes about 30
-    faces, not 4^5. The result covers the same surface; a face split on an edge its neighbour does
-    not split leaves a T-junction, which no collision query minds. Done once when a simulation is
-    built, so a body pair's mesh stays fixed from step to step (what :class:`zoo.CoherentCollider`
-    needs), instead of :func:`refine_near` clipping and refining it at every step.
+    A sliver (shortest edge at most half of ``max_edge``) is cut into a ladder of strips across its
+    length (:func:`_ladder`): pieces as wide as the sliver and nearly ``max_edge`` long. Every other
+    face has its longest edge halved until no edge exceeds ``max_edge`` (longest-edge bisection, not
+    subdivision of every edge). Bisection alone would cut a sliver lengthwise into needles, each
+    nearly as long as ``max_edge``, so a contact across a finely tessellated cylinder would meet
+    several needles per original face (docs/sim-bench.md). The result covers the same surface; a face
+    cut where its neighbour is not leaves a T-junction, which no collision query minds. Done once
+    when a simulation is built, so a body pair's mesh stays fixed from step to step (what
+    :class:`zoo.CoherentCollider` needs), instead of :func:`refine_near` clipping and refining it at
+    every step.
 
     Returns:
         vertices (V', 3), faces (F', 3) (orientation kept), origin (F',) the input face of each
@@ -107,6 +112,11 @@ def bisect_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     origin = np.arange(len(faces))
+    if len(faces):
+        laddered = _ladder(vertices, faces, max_edge, max_faces)
+        if laddered is None:
+            return None
+        vertices, faces, origin = laddered
     while len(faces):
         tri = vertices[faces]
         lengths = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)  # (F, 3): edge k runs from corner k to k + 1
@@ -127,6 +137,83 @@ def bisect_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max
         faces = np.concatenate([faces[keep], np.stack([a, middle, c], axis=1), np.stack([middle, b, c], axis=1)])
         origin = np.concatenate([origin[keep], origin[split], origin[split]])
     return vertices, faces, origin
+
+
+def _ladder(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Every sliver of (vertices (V, 3), faces (F, 3)) longer than ``max_edge`` cut into strips across its length.
+
+    A sliver's shortest edge AB (at most ``max_edge / 2``) faces its far corner C. Its long edges CA
+    and CB are cut into n equal parts (P_i on AC, Q_i on BC, i = 0..n), with n the fewest for which
+    every piece's edges, the diagonal P_i Q_i+1 included (at most |AB| + max(|CA|, |CB|) / n), stay
+    within ``max_edge``. Strip i is the quad P_i Q_i Q_i+1 P_i+1 as two triangles; the last one is the
+    triangle P_n-1 Q_n-1 C. A cut point is shared by the faces on both sides of its edge when they cut
+    it alike (a regularly tessellated cylinder's slivers do).
+
+    Returns:
+        vertices (V', 3) (the input's first), faces (F', 3) (orientation kept), origin (F',); None
+        when the result would exceed ``max_faces`` faces.
+    """
+    tri = vertices[faces]
+    lengths = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)  # (F, 3): edge k runs from corner k to k + 1
+    shortest = lengths.argmin(axis=1)
+    short = lengths[np.arange(len(faces)), shortest]
+    long = lengths.max(axis=1)
+    sliver = np.nonzero((short <= 0.5 * max_edge) & (long > max_edge))[0]
+    if len(sliver) == 0:
+        return vertices, faces, np.arange(len(faces))
+    strips = np.ceil(long[sliver] / (max_edge - short[sliver])).astype(np.int64)  # n per sliver
+    if len(faces) - len(sliver) + int((2 * strips - 1).sum()) > max_faces:
+        return None
+    k = shortest[sliver]
+    a, b, c = (faces[sliver, (k + shift) % 3] for shift in range(3))
+    kept = np.setdiff1d(np.arange(len(faces)), sliver)
+    parts_f, parts_o = [faces[kept]], [kept]
+    points, keys = [], []
+    for n in np.unique(strips):
+        group = np.nonzero(strips == n)[0]
+        fraction = np.arange(n + 1) / n  # (n + 1,) from the short edge (0) to the far corner (1)
+        p = _cut_points(vertices, a[group], c[group], fraction, keys, points)  # (G, n + 1): P_0 = A .. P_n = C
+        q = _cut_points(vertices, b[group], c[group], fraction, keys, points)  # (G, n + 1): Q_0 = B .. Q_n = C
+        lower = np.stack([p[:, :-1], q[:, :-1], q[:, 1:]], axis=2)  # (G, n, 3): P_i Q_i Q_i+1, the last P_n-1 Q_n-1 C
+        upper = np.stack([p[:, :-2], q[:, 1:-1], p[:, 1:-1]], axis=2)  # (G, n - 1, 3): P_i Q_i+1 P_i+1
+        parts_f += [lower.reshape(-1, 3), upper.reshape(-1, 3)]
+        parts_o += [np.repeat(sliver[group], n), np.repeat(sliver[group], n - 1)]
+    faces_out = np.concatenate(parts_f)
+    if not points:
+        return vertices, faces_out, np.concatenate(parts_o)
+    new_keys = np.concatenate(keys)  # (M, 4): edge ends (sorted), cuts, cut index from the first end
+    unique, first, inverse = np.unique(new_keys, axis=0, return_index=True, return_inverse=True)
+    placeholder = faces_out >= len(vertices)  # cut points are numbered len(vertices) + their row in new_keys
+    faces_out[placeholder] = len(vertices) + inverse.reshape(-1)[faces_out[placeholder] - len(vertices)]
+    return np.concatenate([vertices, np.concatenate(points)[first]]), faces_out, np.concatenate(parts_o)
+
+
+def _cut_points(vertices: np.ndarray, start: np.ndarray, end: np.ndarray, fraction: np.ndarray,
+                keys: list, points: list) -> np.ndarray:
+    """Vertex indices (G, T) of the points at ``fraction`` (T,) along the edges start (G,) -> end (G,).
+
+    The ends (fraction 0 and 1) are the edges' own vertices. Interior points are appended to
+    ``points`` (their positions) and ``keys`` (edge ends sorted, cut count, cut index counted from the
+    lower-numbered end: the same point whichever face cuts the edge) and numbered after every vertex
+    and every point appended before them (:func:`_ladder` merges equal keys).
+    """
+    cuts = len(fraction) - 1
+    index = np.empty((len(start), len(fraction)), dtype=np.int64)
+    index[:, 0], index[:, -1] = start, end
+    inner = np.arange(1, cuts)
+    if len(inner):
+        offset = len(vertices) + sum(len(k) for k in keys)
+        t = fraction[inner]
+        positions = vertices[start][:, None] + t[None, :, None] * (vertices[end] - vertices[start])[:, None]
+        forward = start[:, None] < end[:, None]
+        from_low = np.where(forward, inner[None, :], cuts - inner[None, :])
+        low, high = np.minimum(start, end), np.maximum(start, end)
+        key = np.stack(np.broadcast_arrays(low[:, None], high[:, None], np.full_like(from_low, cuts), from_low), axis=-1)
+        index[:, 1:-1] = offset + np.arange(len(start) * len(inner)).reshape(len(start), len(inner))
+        points.append(positions.reshape(-1, 3))
+        keys.append(key.reshape(-1, 4))
+    return index
 
 
 def _clip_to_box(triangle: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -32,13 +32,13 @@ from .contacts import (
     REFINE_CELLS,
     add_contacts,
     as_numpy,
-    bisect_to_size,
     closing_in_time,
     contact_rows,
     face_normals,
     facing_faces,
     reduce_contacts,
     refine_near,
+    refine_to_size,
 )
 from .model import (
     JOINTS,
@@ -67,7 +67,7 @@ class PairMesh:
     """The mesh one (SDF body, mesh body) pair is collided with, fixed for the whole simulation.
 
     Attributes:
-        vertices: (V, 3) the mesh body's mesh refined once (:func:`bisect_to_size`), body frame.
+        vertices: (V, 3) the mesh body's mesh refined once (:func:`refine_to_size`), body frame.
         faces: (F, 3).
         origin: (F,) the body's own face each face comes from.
         normals: (F, 3) unit face normals, body frame.
@@ -292,7 +292,7 @@ class Simulation:
 
     def _pair_mesh(self, sdf_body: Body, mesh_body: Body) -> PairMesh | None:
         """The pair's fixed mesh and collider, or None when the mesh is too large to refine once (see ``refine``)."""
-        refined = bisect_to_size(*mesh_body.mesh, self._max_edge(sdf_body), PREREFINE_MAX_FACES)
+        refined = refine_to_size(*mesh_body.mesh, self._max_edge(sdf_body), PREREFINE_MAX_FACES)
         if refined is None:
             return None
         vertices, faces, origin = refined
