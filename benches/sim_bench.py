@@ -205,8 +205,9 @@ def plot(rows: list[dict], path: Path) -> None:
 
 
 def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, methods=None, references: bool = True,
-                      progress=print, timeout: float = 1800) -> Path:
-    """Every (scenario, method) and reference, each in its own process; writes ``out_dir/sim.json`` and ``sim.png``."""
+                      progress=print, timeout: float = 1800, threads: int | None = None) -> Path:
+    """Every (scenario, method) and reference, each in its own process; writes ``out_dir/sim.json`` and ``sim.png``.
+    ``threads``: torch CPU threads of every run (None: torch's default, which ``OMP_NUM_THREADS`` sets)."""
     from benches.solvers import machine_info
 
     if not os.environ.get("ZOO_DATA"):
@@ -217,7 +218,8 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
     path = out_dir / "sim.json"
 
     def write() -> None:  # after every run: a long bench stopped early keeps what it measured
-        report = {"seconds": seconds, "machine": machine_info(), "rows": rows, "check_mug_hanging": three_way_check(rows),
+        machine = {**machine_info(), **({"threads": threads} if threads else {})}  # the runs' threads, not this process's
+        report = {"seconds": seconds, "machine": machine, "rows": rows, "check_mug_hanging": three_way_check(rows),
                   "speed_bars": speed_bars(rows), "command": "python -m benches.sim_bench " + " ".join(sys.argv[1:])}
         atomic_write_text(path, json.dumps(report, indent=1))
 
@@ -226,7 +228,8 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
         runs += [(kind, ["--reference", kind, scenario]) for kind, applies in REFERENCES.items() if references and scenario in applies]
         for method, args in runs:
             progress(f"{scenario}: {method} ...")
-            rows.append({"scenario": scenario, "method": method, **run_isolated([*args, "--seconds", str(seconds)], timeout)})
+            args += ["--seconds", str(seconds)] + (["--threads", str(threads)] if threads else [])
+            rows.append({"scenario": scenario, "method": method, **run_isolated(args, timeout)})
             progress(f"  {_summary(rows[-1])}")
             write()
         plot(rows, out_dir / "sim.png")
@@ -269,15 +272,22 @@ def main(argv=None) -> None:
     parser.add_argument("--scenario", action="append", choices=sorted(SCENES))
     parser.add_argument("--method", action="append", choices=sorted(METHODS))
     parser.add_argument("--no-references", action="store_true")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads; 0 keeps torch's default")
     parser.add_argument("--one", nargs=2, metavar=("SCENARIO", "METHOD"), help="one run, JSON on stdout (internal)")
     parser.add_argument("--reference", nargs=2, metavar=("KIND", "SCENARIO"), help="one reference run, JSON on stdout (internal)")
     args = parser.parse_args(argv)
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
     if args.one or args.reference:
         row = simulate(*args.one, args.seconds) if args.one else reference(*args.reference, args.seconds)
         row["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+        row["threads"] = torch.get_num_threads()
         print(json.dumps(row, default=float))
         return
-    path = run_sim_benchmark(args.out, args.seconds, args.scenario, args.method, references=not args.no_references)
+    path = run_sim_benchmark(args.out, args.seconds, args.scenario, args.method, references=not args.no_references,
+                             threads=args.threads or None)
     report = json.loads(path.read_text())
     for row in format_table(report):
         print(" | ".join(row))

@@ -135,7 +135,8 @@ def _run_sim(opts: BenchOptions) -> None:
     from benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
 
     console = Console(width=max(Console().width, 150))
-    path = run_sim_benchmark(opts.out, seconds=opts.sim_seconds, progress=console.print if opts.progress else (lambda *_: None))
+    path = run_sim_benchmark(opts.out, seconds=opts.sim_seconds, progress=console.print if opts.progress else (lambda *_: None),
+                             threads=opts.threads)
     report = json.loads(path.read_text())
     machine = report["machine"]
     table = _table(f"simulations, {report['seconds']} s each (torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})",

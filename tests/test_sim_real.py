@@ -59,3 +59,24 @@ def test_coherent_simulation_follows_the_from_scratch_ones(monkeypatch):
             assert stats.reused > 2 * (stats.warm + stats.cold), stats
     for label in ("scratch", "fw"):
         assert np.linalg.norm(ends[label] - ends["coherent"]) < 2e-3, (label, ends)
+
+
+@pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
+def test_sim_bench_runs_each_method_in_its_own_process_with_the_threads_asked(tmp_path, monkeypatch):
+    """`zoo bench --sim --threads N`: every run, each in its own process, uses N torch threads, and the report says so
+    (3 threads: neither torch's default on a 2-core machine nor one)."""
+    import json
+
+    import torch
+
+    from benches.sim_bench import run_sim_benchmark
+
+    monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
+    before = torch.get_num_threads()
+    path = run_sim_benchmark(tmp_path, seconds=0.004, scenarios=["bottle-holder"], methods=["amortized+coherence"],
+                             references=False, progress=lambda *_: None, threads=3)
+    report = json.loads(path.read_text())
+    (row,) = report["rows"]
+    assert "error" not in row, row["error"]
+    assert row["threads"] == 3 and report["machine"]["threads"] == 3 and row["steps"] == 2
+    assert torch.get_num_threads() == before  # the runs' setting stays in their processes
