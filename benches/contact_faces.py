@@ -18,13 +18,14 @@ import os
 import numpy as np
 import torch
 
+from zoo.geometry import edge_lengths
+
 PERCENTILES = (0, 10, 50, 90, 100)
 
 
 def face_shapes(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(widths (F,), longest edges (F,)) of the triangles (F, 3, 3): a sliver is narrow and long."""
-    edges = np.linalg.norm(triangles[:, [1, 2, 0]] - triangles, axis=-1)
-    longest = edges.max(axis=1)
+    longest = edge_lengths(torch.from_numpy(triangles)).amax(dim=1).numpy()
     area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
     return 2.0 * area / np.maximum(longest, 1e-300), longest
 

@@ -228,8 +228,8 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
         runs += [(kind, ["--reference", kind, scenario]) for kind, applies in REFERENCES.items() if references and scenario in applies]
         for method, args in runs:
             progress(f"{scenario}: {method} ...")
-            args += ["--seconds", str(seconds)] + (["--threads", str(threads)] if threads else [])
-            rows.append({"scenario": scenario, "method": method, **run_isolated(args, timeout)})
+            timing = ["--seconds", str(seconds)] + (["--threads", str(threads)] if threads else [])
+            rows.append({"scenario": scenario, "method": method, **run_isolated([*args, *timing], timeout)})
             progress(f"  {_summary(rows[-1])}")
             write()
         plot(rows, out_dir / "sim.png")

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..geometry import faces_touching_box
+from ..geometry import edge_lengths, faces_touching_box
 
 PATCH_COS = math.cos(math.radians(20.0))  # faces within 20 degrees of a patch's deepest contact's face join it
 FLAT_COS = math.cos(math.radians(5.0))  # a patch's extra points: SDF normals within 5 degrees of its deepest's
@@ -68,7 +68,7 @@ def refine_near(vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.
     box = [torch.as_tensor(np.asarray(b, dtype=vertices.dtype)) for b in (lo, hi)]
     near = faces_touching_box(torch.as_tensor(vertices), torch.as_tensor(faces, dtype=torch.long), *box).numpy()
     tri = vertices[faces[near]]  # (N, 3, 3): only the faces near the box (a step's hot path on a large mesh)
-    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(axis=1)
+    edge = _edge_lengths(tri).max(axis=1)
     small = near[edge <= max_edge]
     large = np.nonzero(edge > max_edge)[0]  # positions in ``near``
     if len(large) == 0:
@@ -119,7 +119,7 @@ def refine_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max
         vertices, faces, origin = laddered
     while len(faces):
         tri = vertices[faces]
-        lengths = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)  # (F, 3): edge k runs from corner k to k + 1
+        lengths = _edge_lengths(tri)
         longest = lengths.argmax(axis=1)
         split = np.nonzero(lengths[np.arange(len(faces)), longest] > max_edge)[0]
         if len(split) == 0:
@@ -147,15 +147,16 @@ def _ladder(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces:
     and CB are cut into n equal parts (P_i on AC, Q_i on BC, i = 0..n), with n the fewest for which
     every piece's edges, the diagonal P_i Q_i+1 included (at most |AB| + max(|CA|, |CB|) / n), stay
     within ``max_edge``. Strip i is the quad P_i Q_i Q_i+1 P_i+1 as two triangles; the last one is the
-    triangle P_n-1 Q_n-1 C. A cut point is shared by the faces on both sides of its edge when they cut
-    it alike (a regularly tessellated cylinder's slivers do).
+    triangle P_n-1 Q_n-1 C: the detector's cut of a needle (:func:`zoo.amortized.subdivision.strip_levels`),
+    on the mesh. A cut point is shared by the faces on both sides of its edge when they cut it alike (a
+    regularly tessellated cylinder's slivers do).
 
     Returns:
         vertices (V', 3) (the input's first), faces (F', 3) (orientation kept), origin (F',); None
         when the result would exceed ``max_faces`` faces.
     """
     tri = vertices[faces]
-    lengths = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)  # (F, 3): edge k runs from corner k to k + 1
+    lengths = _edge_lengths(tri)
     shortest = lengths.argmin(axis=1)
     short = lengths[np.arange(len(faces)), shortest]
     long = lengths.max(axis=1)
@@ -183,7 +184,7 @@ def _ladder(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces:
     if not points:
         return vertices, faces_out, np.concatenate(parts_o)
     new_keys = np.concatenate(keys)  # (M, 4): edge ends (sorted), cuts, cut index from the first end
-    unique, first, inverse = np.unique(new_keys, axis=0, return_index=True, return_inverse=True)
+    _, first, inverse = np.unique(new_keys, axis=0, return_index=True, return_inverse=True)
     placeholder = faces_out >= len(vertices)  # cut points are numbered len(vertices) + their row in new_keys
     faces_out[placeholder] = len(vertices) + inverse.reshape(-1)[faces_out[placeholder] - len(vertices)]
     return np.concatenate([vertices, np.concatenate(points)[first]]), faces_out, np.concatenate(parts_o)
@@ -214,6 +215,11 @@ def _cut_points(vertices: np.ndarray, start: np.ndarray, end: np.ndarray, fracti
         points.append(positions.reshape(-1, 3))
         keys.append(key.reshape(-1, 4))
     return index
+
+
+def _edge_lengths(triangles: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) -> (F, 3): edge k runs from corner k to k + 1 (:func:`zoo.geometry.edge_lengths` on numpy arrays)."""
+    return edge_lengths(torch.from_numpy(np.ascontiguousarray(triangles))).numpy()
 
 
 def _clip_to_box(triangle: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
