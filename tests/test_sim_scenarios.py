@@ -66,6 +66,32 @@ def test_count_teeth_and_thread_pitch_on_synthetic_geometry():
     assert hand == "left" and pitch == pytest.approx(0.0015, abs=2.5e-5)
 
 
+def test_screw_asymmetry_is_zero_only_for_the_threads_own_screw():
+    """benches/screw_symmetry.py against a field known in closed form: r - R - A cos(2 pi z / p - phi) is unchanged by
+    a right-hand screw of pitch p, and changed by a pure turn and by the left-hand screw."""
+    from benches.screw_symmetry import advance_per_rad, asymmetry
+
+    pitch, amplitude = 0.002, 2e-4
+
+    def thread(points):
+        phi = np.arctan2(points[:, 1], points[:, 0])
+        return np.hypot(points[:, 0], points[:, 1]) - 0.008 - amplitude * np.cos(2 * np.pi * points[:, 2] / pitch - phi)
+
+    rng = np.random.default_rng(0)
+    angle, z = rng.uniform(-np.pi, np.pi, 500), rng.uniform(0.02, 0.03, 500)
+    points = np.stack([0.008 * np.cos(angle), 0.008 * np.sin(angle), z], axis=1)
+    angles = (0.01, 1.0)
+    right = asymmetry(thread, points, angles, advance_per_rad(pitch, "right"))
+    assert [r["theta"] for r in right] == [0.01, -0.01, 1.0, -1.0]
+    assert max(r["p100_mm"] for r in right) < 1e-9
+    # a pure turn shifts the thread's phase by theta, the left-hand screw by 2 theta; A |cos(a) - cos(a + s)| is at
+    # most 2 A |sin(s / 2)|, reached where a = -s / 2
+    for advance, shift in ((0.0, 1), (advance_per_rad(pitch, "left"), 2)):
+        for r in asymmetry(thread, points, angles, advance):
+            most = 1e3 * 2 * amplitude * abs(np.sin(shift * r["theta"] / 2))
+            assert 0.5 * most < r["p100_mm"] <= most + 1e-9
+
+
 def test_gripper_motion_closes_then_lifts_then_carries():
     from benches.sim_scenarios import CARRY, LIFT, PHASES, _finger_offset
 
@@ -195,3 +221,18 @@ def test_faces_counted_within_the_margin_are_those_a_brute_force_search_finds():
     assert set(must.tolist()) <= found
     may = set(near[brute - slack <= sim.margin + 1e-4].tolist())
     assert found <= may
+
+
+def test_the_timeline_windows_add_up_to_the_run():
+    """benches/sim_timeline.py on the bottle landing in the holder (bundled data): the windows cover every step once,
+    their collider counters add up to the colliders' totals and their medians are the log's."""
+    from benches.sim_timeline import COUNTERS, timeline
+
+    result = timeline("bottle-holder", seconds=0.05, window=10)  # 25 steps of the fall: two full windows and one of 5
+    windows = result["windows"]
+    assert [(w["first_step"], w["steps"]) for w in windows] == [(0, 10), (10, 10), (20, 5)]
+    assert all(w["collide_ms_median"] <= w["collide_ms_p90"] for w in windows)
+    assert all(w["contacts_per_step"] == 0 and w["speed_cm_s_end"] > 0 for w in windows)  # falling: no contact yet
+    for counter in COUNTERS:
+        assert sum(w[f"{counter}_per_step"] * w["steps"] for w in windows) == pytest.approx(result["totals"][counter])
+    assert result["totals"]["candidates"] > 0  # the holder's wall lies within the falling bottle's bounds
