@@ -11,6 +11,8 @@ import pytest
 import torch
 from real_meshes import SKIP_REASON, zoo_data
 
+import zoo
+
 pytest.importorskip("mujoco")
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -236,3 +238,27 @@ def test_the_timeline_windows_add_up_to_the_run():
     for counter in COUNTERS:
         assert sum(w[f"{counter}_per_step"] * w["steps"] for w in windows) == pytest.approx(result["totals"][counter])
     assert result["totals"]["candidates"] > 0  # the holder's wall lies within the falling bottle's bounds
+
+
+def test_query_sites_counts_each_query_with_the_function_that_asked():
+    """benches/query_sites.py: the queries made inside ``timed_queries`` are counted by kind and caller, points
+    included, and the NeuralSDF's own methods are restored afterwards."""
+    from benches.query_sites import timed_queries
+    from zoo.neural import NeuralShape
+
+    shape = zoo.load("mugs").shape("hoi4d_mug_0001")
+    points = torch.zeros(7, 3)
+
+    def ask_twice():
+        shape(points)
+        shape.value_and_grad(points[:5])
+
+    with timed_queries() as sites:
+        ask_twice()
+        ask_twice()
+    site = "test_sim_scenarios.ask_twice < test_sim_scenarios.test_query_sites_counts_each_query_with_the_function_that_asked"
+    assert set(sites) == {("value", site), ("value+grad", site)}
+    assert sites[("value", site)][:2] == [2, 14] and sites[("value+grad", site)][:2] == [2, 10]
+    assert all(seconds > 0 for _, _, seconds in sites.values())
+    shape(points)
+    assert sites[("value", site)][0] == 2 and "timed" not in NeuralShape._distance.__name__
