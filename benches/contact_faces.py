@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 
 import numpy as np
 import torch
@@ -85,8 +84,9 @@ def main(argv=None) -> None:
     parser.add_argument("--scene", choices=sorted(SCENARIOS), required=True)
     parser.add_argument("--steps", type=int, default=80, help="steps simulated before counting (default 80)")
     args = parser.parse_args(argv)
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    from benches.sim_scenarios import require_meshes
+
+    require_meshes()
     torch.set_num_threads(1)
     for row in contact_faces(args.scene, args.steps):
         print(json.dumps(row))

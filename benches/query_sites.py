@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from collections import defaultdict
@@ -100,8 +99,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip", type=int, default=10, help="steps run first, not counted")
     parser.add_argument("--out", default="out/query-sites.json")
     args = parser.parse_args(argv)
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    from benches.sim_scenarios import require_meshes
+
+    require_meshes()
     torch.set_num_threads(1)
     result = profile(args.scene, args.steps, args.skip)
     print(f"{args.scene}, steps {args.skip}-{args.skip + args.steps - 1}: collision {result['collide_ms_mean']:.1f} ms a step "

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 
 import numpy as np
 import torch
@@ -75,17 +74,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--exact-points", type=int, default=4000, help="points for the mesh's exact distance (slower)")
     parser.add_argument("--out", default="out/screw-symmetry.json")
     args = parser.parse_args(argv)
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
     import zoo
-    from benches.sim_scenarios import BOLT_FILE, _mesh, thread_pitch
+    from benches.sim_scenarios import BOLT_FILE, _mesh, require_meshes, thread_pitch
     from zoo.meshes import signed_distance
 
+    require_meshes()
     torch.set_num_threads(1)
     mesh = _mesh(BOLT_FILE)
     pitch, hand = thread_pitch(np.asarray(mesh.vertices))
     model = zoo.load("bolts")
     shape = model.shape("factory_bolt_m16")
+
     def neural(p):
         with torch.no_grad():
             return shape(torch.from_numpy(p)).double().numpy()

@@ -208,10 +208,10 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
                       progress=print, timeout: float = 1800, threads: int | None = None) -> Path:
     """Every (scenario, method) and reference, each in its own process; writes ``out_dir/sim.json`` and ``sim.png``.
     ``threads``: torch CPU threads of every run (None: torch's default, which ``OMP_NUM_THREADS`` sets)."""
+    from benches.sim_scenarios import require_meshes
     from benches.solvers import machine_info
 
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    require_meshes()
     scenarios = list(scenarios or SCENES)
     rows = []
     out_dir.mkdir(parents=True, exist_ok=True)

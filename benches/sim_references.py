@@ -624,8 +624,9 @@ def coacd_native(scenario: str, seconds: float, dt: float | None = None, params:
     :func:`step_metrics`'s keys, "geometry", "notes", "decomposition" and the scenario's outcome."""
     import mujoco
 
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    from benches.sim_scenarios import require_meshes
+
+    require_meshes()
     scene = _scene(scenario)
     dt = float(scene["sim"].get("dt", 0.002)) if dt is None else dt
     pieces, decomposition = {}, {}

@@ -44,6 +44,12 @@ GEAR_SETTLE_S = 0.02  # the speed ratio is measured after the first contacts' tr
 # -- geometry measured on the meshes ------------------------------------------------------------
 
 
+def require_meshes() -> None:
+    """Exit with what to do where $ZOO_DATA (the real meshes these benches run on) is not set."""
+    if not os.environ.get("ZOO_DATA"):
+        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+
+
 def _mesh(relative: str):
     import trimesh
 
@@ -112,8 +118,7 @@ def advance(scenario: Scenario, sim, extra: dict) -> None:
 def run(name: str, seconds: float | None = None, out: Path | None = None) -> dict:
     """Simulate scenario ``name`` (its scene's seconds unless given) and compute its check; write
     ``out/<name>.json`` when ``out`` is given. Returns the result (check, timings, penetration)."""
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    require_meshes()
     scenario, sim, extra = start(name)
     path = SCENES / scenario.scene
     seconds = sim.seconds if seconds is None else seconds

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from dataclasses import asdict
 
 import numpy as np
@@ -68,8 +67,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--window", type=int, default=25, help="steps per window")
     parser.add_argument("--out", default="out/timeline.json")
     args = parser.parse_args(argv)
-    if not os.environ.get("ZOO_DATA"):
-        raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
+    from benches.sim_scenarios import require_meshes
+
+    require_meshes()
     torch.set_num_threads(1)
     result = timeline(args.scene, args.seconds, args.window)
     print(f"{args.scene}: collision ms per step, median over the run {result['collide_ms_median']:.1f}")
