@@ -12,7 +12,6 @@ arithmetic). The first ``--skip`` steps are not counted. One torch thread; the t
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections import defaultdict
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from zoo.files import atomic_write_text
+from benches.report import write_report
 
 _INSIDE = ("neural.py", "sdf.py", "query_sites.py")  # frames of the query itself, not its caller
 
@@ -87,7 +86,7 @@ def profile(name: str, steps: int, skip: int) -> dict:
                     "ms_per_step": 1e3 * s / steps} for (kind, site), (c, p, s) in sites.items()),
                   key=lambda r: -r["ms_per_step"])
     queries = sum(r["ms_per_step"] for r in rows)
-    return {"scenario": name, "steps": steps, "skipped": skip, "threads": 1, "collide_ms_median": float(np.median(collide)),
+    return {"scenario": name, "steps": steps, "skipped": skip, "collide_ms_median": float(np.median(collide)),
             "collide_ms_mean": float(collide.mean()), "query_ms_per_step": queries,
             "other_ms_per_step": float(collide.mean()) - queries, "sites": rows}
 
@@ -110,9 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'kind':<10} {'calls':>5} {'points':>7} {'ms':>6}  site (per step)")
     for r in result["sites"]:
         print(f"{r['kind']:<10} {r['calls_per_step']:>5.1f} {r['points_per_step']:>7.0f} {r['ms_per_step']:>6.2f}  {r['site']}")
-    result["command"] = "python -m benches.query_sites " + " ".join(argv or [])
-    atomic_write_text(args.out, json.dumps(result, indent=1))
-    print(f"written: {args.out}")
+    write_report(args.out, result, "benches.query_sites", argv)
 
 
 if __name__ == "__main__":

@@ -16,12 +16,11 @@ Needs $ZOO_DATA (the bolt mesh; pitch and hand are measured on it by benches.sim
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 import torch
 
-from zoo.files import atomic_write_text
+from benches.report import write_report
 
 ANGLES = (0.003, 0.01, 0.05, 0.2, 1.0)  # rad; a Bolt-Nut step turns the nut by about 0.003-0.006 rad
 THREAD_Z = (0.020, 0.036)  # m: inside the threaded shank (thread_pitch reads 0.018-0.038) after an advance of 1/6 mm
@@ -99,15 +98,13 @@ def main(argv: list[str] | None = None) -> None:
               "thread_z_m": THREAD_Z,
               "neural_screw": asymmetry(neural, points, ANGLES, screw_rate),
               "neural_turn": asymmetry(neural, points, ANGLES, 0.0),
-              "exact_screw": asymmetry(exact, points[: args.exact_points], ANGLES, screw_rate),
-              "command": "python -m benches.screw_symmetry " + " ".join(argv or [])}
+              "exact_screw": asymmetry(exact, points[: args.exact_points], ANGLES, screw_rate)}
     print(f"pitch {1e3 * pitch:.3f} mm, {hand}-hand; |f(S x) - f(x)| in mm over points within {1e3 * OFFSET:g} mm of the thread")
     print(f"{'theta rad':>9} | {'NeuralSDF screw p50 p99 max':>28} | {'NeuralSDF turn p50 p99 max':>27} | {'mesh screw p50 p99 max':>23}")
     for ns, nt, ex in zip(result["neural_screw"], result["neural_turn"], result["exact_screw"]):
         cells = [" ".join(f"{r[f'p{q}_mm']:.4f}" for q in PERCENTILES) for r in (ns, nt, ex)]
         print(f"{ns['theta']:>+9.3f} | {cells[0]:>28} | {cells[1]:>27} | {cells[2]:>23}")
-    atomic_write_text(args.out, json.dumps(result, indent=1))
-    print(f"written: {args.out}")
+    write_report(args.out, result, "benches.screw_symmetry", argv)
 
 
 if __name__ == "__main__":

@@ -9,15 +9,13 @@ machine's state; medians in ms. One torch thread, float32, points uniform in the
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import time
 
 import torch
 
 import zoo
-from zoo.files import atomic_write_text
+from benches.report import write_report
 
 POINT_COUNTS = (8, 100, 1000)
 
@@ -63,10 +61,8 @@ def main(argv: list[str] | None = None) -> None:
     for r in rows:
         print(f"{r['points']:>5} points: value {r['value_ms']:.3f} ms, value and gradient {r['value_and_grad_ms']:.3f} ms "
               f"(autograd {r['value_and_grad_autograd_ms']:.3f} ms)")
-    result = {"model": f"{model.name}@{model.version}", "shape": args.shape, "threads": 1, "rows": rows,
-              "machine": platform.platform(), "command": "python -m benches.sdf_queries " + " ".join(argv or [])}
-    atomic_write_text(args.out, json.dumps(result, indent=1))
-    print(f"written: {args.out}")
+    write_report(args.out, {"model": f"{model.name}@{model.version}", "shape": args.shape, "rows": rows},
+                 "benches.sdf_queries", argv)
 
 
 if __name__ == "__main__":

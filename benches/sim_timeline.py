@@ -17,13 +17,12 @@ costs what. One torch thread, as in ``zoo bench --sim``:
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import asdict
 
 import numpy as np
 import torch
 
-from zoo.files import atomic_write_text
+from benches.report import write_report
 
 COUNTERS = ("candidates", "warm", "reused", "cold")
 
@@ -56,7 +55,7 @@ def timeline(name: str, seconds: float, window: int) -> dict:
             before = now
     collide = [1e3 * r.collide_s for r in sim.log]
     totals = asdict(sim.collider_stats())
-    return {"scenario": name, "seconds": seconds, "dt": sim.dt, "window": window, "body": moving, "threads": 1,
+    return {"scenario": name, "seconds": seconds, "dt": sim.dt, "window": window, "body": moving,
             "collide_ms_median": float(np.median(collide)), "totals": {c: totals[c] for c in COUNTERS}, "windows": rows}
 
 
@@ -78,9 +77,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{r['first_step']:>3}-{r['first_step'] + r['steps'] - 1:<4}| {r['collide_ms_median']:>11.1f} {r['collide_ms_p90']:>4.1f} |"
               f" {r['candidates_per_step']:>10.0f} {r['warm_per_step']:>5.0f} {r['reused_per_step']:>5.0f} |"
               f" {r['contacts_per_step']:>8.1f} | {r['penetration_mm_max']:>11.2f} | {r['speed_cm_s_end']:>10.2f}")
-    result["command"] = "python -m benches.sim_timeline " + " ".join(argv or [])
-    atomic_write_text(args.out, json.dumps(result, indent=1))
-    print(f"written: {args.out}")
+    write_report(args.out, result, "benches.sim_timeline", argv)
 
 
 if __name__ == "__main__":

@@ -183,3 +183,18 @@ def test_peak_memory_comes_from_a_child_process(tmp_path):
     mem = peak_memory_in_child(scene, "fw-matched", 10, 5, str(tmp_path / "standins"))
     assert mem["peak_rss_mb"] >= mem["peak_rss_loaded_mb"] > 0
     assert mem["collide_extra_mb"] >= 0
+
+
+def test_a_bench_report_records_the_command_that_made_it(tmp_path, monkeypatch):
+    """benches/report.py: the JSON holds the report, the machine and the command with its arguments: the ones a
+    caller passed, else the process's own (a bench run from the shell passes none)."""
+    from benches.report import write_report
+
+    write_report(tmp_path / "a.json", {"rows": [1, 2]}, "benches.example", ["--out", "a.json"])
+    report = json.loads((tmp_path / "a.json").read_text())
+    assert report["rows"] == [1, 2] and report["command"] == "python -m benches.example --out a.json"
+    assert report["machine"]["threads"] == torch.get_num_threads()
+    monkeypatch.setattr("sys.argv", ["example.py", "--steps", "3"])
+    write_report(tmp_path / "b.json", {}, "benches.example")
+    assert json.loads((tmp_path / "b.json").read_text())["command"] == "python -m benches.example --steps 3"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]  # no temporary file left behind
