@@ -3,9 +3,12 @@
 A :class:`Stage` names its input files, its config (a JSON-able dict), the code it runs and its
 output files. The code is hashed, not versioned by hand (:func:`code_digest`): each entry of
 ``Stage.code`` is a module name, standing for the source of that module and of every module of
-``pipeline`` and ``zoo`` it imports (transitively), or a function, standing for its own source
-(a stage's build function defined beside other stages). Editing any of them reruns the stage,
-and, when its outputs change, the stages that read them. After a successful run,
+``pipeline`` and ``zoo`` it imports (transitively, function-level imports included, since the
+stage may call them; ``zoo/__init__.py`` imports nothing eagerly, so importing ``zoo.neural``
+does not bring in ``zoo.collision``), or a function, standing for its own source (a stage's
+build function defined beside other stages). What is hashed is the code without its comments
+and docstrings (:func:`source_digest`): editing the code reruns the stage and, when its outputs
+change, the stages that read them; editing a comment or a docstring does not. After a successful run,
 :func:`run_stage` writes a lock record beside the outputs::
 
     {"stage": name, "code": [modules...], "code_sha256": "...", "config": {...}, "config_sha256": "...",
@@ -24,6 +27,7 @@ import functools
 import hashlib
 import inspect
 import json
+import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,15 +88,37 @@ def code_closure(modules, root: Path | None = None) -> dict[str, Path]:
     return dict(sorted(out.items()))
 
 
+def _without_docstrings(tree: ast.AST) -> ast.AST:
+    """``tree`` with the docstring of every module, class and function removed (in place)."""
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                node.body = node.body[1:] or [ast.Pass()]
+    return tree
+
+
+@functools.lru_cache(maxsize=1024)
+def source_digest(source: str | bytes) -> str:
+    """sha256 of Python source as code: its syntax tree without docstrings, so comments, docstrings,
+    blank lines and line numbers do not count (the tree's dump carries no positions). Source that
+    does not parse on its own (a lambda's line) is hashed as text."""
+    try:
+        tree = _without_docstrings(ast.parse(textwrap.dedent(source) if isinstance(source, str) else source))
+    except SyntaxError:
+        return hashlib.sha256(source.encode() if isinstance(source, str) else source).hexdigest()
+    return hashlib.sha256(ast.dump(tree).encode()).hexdigest()
+
+
 def code_digest(code, root: Path | None = None) -> str:
-    """sha256 of the code a stage runs: module names (with their project imports) and functions (their source)."""
+    """sha256 of the code a stage runs: module names (with their project imports) and functions (their
+    source), comments and docstrings aside (see :func:`source_digest`)."""
     h = hashlib.sha256()
     names = [c for c in code if isinstance(c, str)]
     for name, path in code_closure(names, root).items():
-        h.update(f"{name}\0".encode())
-        h.update(path.read_bytes())
+        h.update(f"{name}\0{source_digest(path.read_bytes())}\0".encode())
     for fn in (c for c in code if not isinstance(c, str)):
-        h.update(f"{fn.__module__}.{fn.__qualname__}\0{inspect.getsource(fn)}".encode())
+        h.update(f"{fn.__module__}.{fn.__qualname__}\0{source_digest(inspect.getsource(fn))}\0".encode())
     return h.hexdigest()
 
 

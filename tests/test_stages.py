@@ -7,7 +7,16 @@ import json
 import pytest
 
 import pipeline.stages as stages
-from pipeline.stages import Stage, canonical_json, code_closure, code_digest, config_hash, is_up_to_date, run_stage
+from pipeline.stages import (
+    Stage,
+    canonical_json,
+    code_closure,
+    code_digest,
+    config_hash,
+    is_up_to_date,
+    run_stage,
+    source_digest,
+)
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_write_text
 
@@ -158,3 +167,52 @@ def test_config_hash_ignores_key_order_and_rejects_non_json():
         canonical_json({"x": float("nan")})
     with pytest.raises(InputError):
         Stage("empty", {}, {}, {})
+
+
+def copy_sources(root):
+    """The project's zoo/ and pipeline/ Python sources under ``root`` (a scratch copy to edit)."""
+    for package in stages.PROJECT_PACKAGES:
+        for path in (stages.ROOT / package).rglob("*.py"):
+            target = root / path.relative_to(stages.ROOT)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(path.read_bytes())
+
+
+def edit(path, old, new):
+    text = path.read_text()
+    assert old in text, f"{path}: {old!r} not found; the test's edit needs updating"
+    path.write_text(text.replace(old, new, 1))
+
+
+def test_the_fit_stage_digest_covers_the_code_it_runs_and_nothing_else(tmp_path):
+    """pipeline.fit_sdf's digest: unchanged by edits of modules it never imports (coherence, collision,
+    zoo.sim) and by comments and docstrings in its own module; changed by a code edit there or in
+    zoo.neural, which it runs."""
+    root = tmp_path / "project"
+    copy_sources(root)
+    closure = set(code_closure(["pipeline.fit_sdf"], root))
+    assert {"pipeline.fit_sdf", "pipeline.training", "zoo.neural"} <= closure
+    assert not closure & {"zoo.coherence", "zoo.collision", "zoo.voxel"}
+    assert not any(m.startswith("zoo.sim") for m in closure)
+    before = code_digest(["pipeline.fit_sdf"], root)
+    edit(root / "zoo" / "coherence.py", "def ", "def unused_helper():\n    return 1\n\n\ndef ")
+    edit(root / "zoo" / "collision.py", "def ", "def unused_helper():\n    return 2\n\n\ndef ")
+    (root / "zoo" / "sim" / "extra.py").write_text("X = 1\n")
+    edit(root / "zoo" / "sim" / "__init__.py", "\n", "\nY = 2\n")
+    fit = root / "pipeline" / "fit_sdf.py"
+    edit(fit, "\nimport json\n", "\n# a comment about json\nimport json  # and another\n\n")
+    edit(fit, '"""', '"""An edited docstring. ')
+    assert code_digest(["pipeline.fit_sdf"], root) == before
+    edit(fit, "\nimport math\n", "\nimport math\nEDITED = 1\n")
+    after = code_digest(["pipeline.fit_sdf"], root)
+    assert after != before
+    edit(root / "zoo" / "neural.py", "\nimport ", "\nEDITED = 1\nimport ")
+    assert code_digest(["pipeline.fit_sdf"], root) != after
+
+
+def test_source_digest_ignores_comments_and_docstrings_not_code():
+    base = source_digest('"""Module."""\nclass A:\n    """Doc."""\n    def f(self):\n        "doc"\n        return 1\n')
+    assert base == source_digest('class A:  # why\n\n    def f(self):\n        # note\n        return 1\n')
+    assert base != source_digest('class A:\n    def f(self):\n        return 2\n')
+    assert base != source_digest('class A:\n    def f(self):\n        x = "not a docstring"\n        return 1\n')
+    assert source_digest("def f():\n    'only a docstring'\n") == source_digest("def f():\n    pass\n")

@@ -1,11 +1,14 @@
 """zoo.validation: the argument checks zoo and the pipeline share, and the names zoo exports."""
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
+import zoo
 from zoo import validation as v
 from zoo.errors import InputError
 
@@ -66,3 +69,15 @@ def test_collide_is_the_function_and_every_exported_name_exists():
     assert callable(zoo.collide) and zoo.collide is zoo.collision.collide
     assert all(hasattr(zoo, name) for name in zoo.__all__)
     assert {"load", "list_models", "collide", "Contacts", "Sphere", "Box", "Torus", "solvers"} <= set(zoo.__all__)
+
+
+def test_import_zoo_imports_each_public_name_on_first_use():
+    """`import zoo` runs zoo/__init__.py alone; a public name imports its own module (and what that
+    imports), not the others: an edit of zoo.collision does not touch code that only uses zoo.Sphere."""
+    code = ("import sys, zoo; before = sorted(m for m in sys.modules if m.startswith('zoo.')); zoo.Sphere; "
+            "from zoo import errors; print(before, 'zoo.sdf' in sys.modules, 'zoo.collision' in sys.modules, "
+            "zoo.solvers.frank_wolfe.__module__, zoo.collide.__module__, sorted(dir(zoo)) == sorted(set(dir(zoo))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["[]", "True", "False", "zoo.solvers", "zoo.collision", "True"]
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        zoo.not_a_name  # noqa: B018
