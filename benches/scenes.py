@@ -78,12 +78,11 @@ from zoo.collision import DEFAULT_ITERS, candidate_triangles
 from zoo.errors import InputError, ModelNotFoundError
 from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
-from zoo.scenes import Scene, load_scene, read_scene, scene_from_dict
+from zoo.scenes import Scene, load_scene, read_scene, resolve_scene, scene_from_dict
 from zoo.voxel import VoxelSDF
 
 from .solvers import machine_info, steady_allocator
 
-SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 PAPER_SCENES = ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")
 # Rounds of the narrow phase's timing per ``repeats``: a round costs about one amortized collide and a
 # half (mug-rack 0.8 s, bolt-nut 1.7 s), and the ratio to the floor is the closest call of the bench.
@@ -139,7 +138,7 @@ def scene_paths(names=None) -> list[Path]:
     out = []
     for n in names or PAPER_SCENES:
         p = Path(n)
-        out.append(p if p.suffix == ".toml" else SCENES_DIR / f"{n}.toml")
+        out.append(p if p.suffix == ".toml" else resolve_scene(n))
     return out
 
 

@@ -23,10 +23,10 @@ from zoo.errors import DataError, InputError
 from zoo.files import sha256_file
 from zoo.meshes import up_rotation
 from zoo.registry import toml_parser
+from zoo.resources import bundled
 
 tomllib = toml_parser()
 
-MANIFEST_DIR = Path(__file__).resolve().parent.parent / "manifests" / "categories"
 DATA_ENV = "ZOO_DATA"
 SPLITS = ("train", "test", "scene")
 
@@ -79,25 +79,32 @@ class Category:
         return sorted({m.file.split("/")[0] for m in self.meshes.values()})
 
 
-def list_categories(manifest_dir: str | os.PathLike = MANIFEST_DIR) -> list[str]:
-    return sorted(p.stem for p in Path(manifest_dir).glob("*.toml"))
+def manifests_folder() -> Path:
+    """The bundled category manifests (:func:`zoo.resources.bundled`): the clone's ``manifests/categories``,
+    else the installed wheel's copy."""
+    return bundled("manifests") / "categories"
 
 
-def manifest_path(category: str | os.PathLike, manifest_dir: str | os.PathLike = MANIFEST_DIR) -> Path:
+def list_categories(manifest_dir: str | os.PathLike | None = None) -> list[str]:
+    return sorted(p.stem for p in Path(manifest_dir or manifests_folder()).glob("*.toml"))
+
+
+def manifest_path(category: str | os.PathLike, manifest_dir: str | os.PathLike | None = None) -> Path:
     """A category name ("mugs") or a path to a .toml manifest -> the manifest's path."""
     p = Path(category)
     if p.suffix == ".toml":
         if not p.is_file():
             raise DataError(f"category manifest {p} does not exist")
         return p
-    p = Path(manifest_dir) / f"{category}.toml"
+    manifest_dir = Path(manifest_dir or manifests_folder())
+    p = manifest_dir / f"{category}.toml"
     if not p.is_file():
         known = ", ".join(list_categories(manifest_dir)) or "none"
         raise InputError(f"unknown category {str(category)!r}; known categories: {known} (manifests in {manifest_dir})")
     return p
 
 
-def load_category(category: str | os.PathLike, manifest_dir: str | os.PathLike = MANIFEST_DIR) -> Category:
+def load_category(category: str | os.PathLike, manifest_dir: str | os.PathLike | None = None) -> Category:
     """Parse and check a category manifest (by name or path)."""
     path = manifest_path(category, manifest_dir)
     try:

@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from zoo.files import atomic_path
-from zoo.validation import int_at_least
+from zoo.validation import as_device, int_at_least
 
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
 from .fit_sdf import FitConfig, fit_sdf, load_training_data, print_log, save_result
@@ -289,6 +289,7 @@ def fit_category(category: str, data_dir: str | os.PathLike | None = None, prese
     """
     from .categories import load_category, resolve_data_dir
 
+    as_device(device)  # before any stage runs: a missing GPU is a typed error, not a late AssertionError
     cat = load_category(category)
     p = PRESETS.lookup(preset)
     if steps is not None:

@@ -32,7 +32,7 @@ from zoo.config import DictConfig
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path
 from zoo.neural import NeuralSDF, NeuralSDFConfig
-from zoo.validation import positive_float, positive_int
+from zoo.validation import as_device, positive_float, positive_int
 
 from .presets import Presets
 from .stages import code_digest
@@ -217,6 +217,7 @@ def distributed_context(device: str | torch.device):
     """(rank, world, device) for this process; initialises the process group under torchrun."""
     import torch.distributed as dist
 
+    as_device(device)  # an unusable device: a typed error, not torch's AssertionError
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return 0, 1, torch.device(device)

@@ -20,6 +20,7 @@ from pathlib import Path
 from zoo import registry
 from zoo.errors import DataError, InputError, require
 from zoo.files import CHECKSUMS, atomic_write_text, sha256_file, verify_directory, write_checksums
+from zoo.resources import inside_installed_package
 
 CARD = "README.md"
 NONCOMMERCIAL = "non-commercial research only"
@@ -385,6 +386,21 @@ def write_models_manifest(name: str, manifest: dict) -> Path:
     return path
 
 
+def refuse_installed_package() -> None:
+    """A release goes into the registry's folders; from an installed wheel those are inside site-packages,
+    which a release must never change: then it asks for folders of the user's (the registry reads them too)."""
+    folders = {registry.PRETRAINED_ENV: registry.pretrained_dir(), registry.MANIFESTS_ENV: registry.manifests_dir()}
+    inside = {env: folder for env, folder in folders.items() if inside_installed_package(folder)}
+    if inside:
+        raise InputError(
+            f"zoo package writes a release into the registry's folders, here those of the installed package "
+            f"({', '.join(str(f) for f in inside.values())}), which it never changes; set "
+            + " and ".join(f"${env}" for env in inside)
+            + " to folders of yours (zoo.load and `zoo list` read them too), e.g. "
+            "ZOO_PRETRAINED=~/zoo/pretrained ZOO_MANIFESTS=~/zoo/manifests zoo package ..., or run it from a clone"
+        )
+
+
 def package_model(
     source: str | os.PathLike,
     version: str,
@@ -408,6 +424,7 @@ def package_model(
     category = config.get("category") or (str(source) if not Path(source).is_dir() else fit.name)
     name = registry.check_model_name(name or config.get("name") or category)
 
+    refuse_installed_package()
     manifest = read_models_manifest(name)
     destination = registry.pretrained_dir() / f"{name}-{version}"
     if not force and (version in manifest["versions"] or destination.exists()):
@@ -465,8 +482,6 @@ def _build_package(staging, fit, config, name, version, category, metrics_file, 
     entry["files"] = file_records(staging)
     (staging / CARD).write_text(model_card(name, version, config, entry, sources))
     write_checksums(staging)
-    for path in staging.iterdir():
-        path.chmod(0o644)  # atomic writes leave 0600 temp-file modes; a release is world-readable
     entry["files"] = file_records(staging)
     return entry
 

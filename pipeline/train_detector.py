@@ -42,7 +42,7 @@ from zoo.detector import AmortizedDetector
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, perimeter
-from zoo.validation import positive_float, positive_int
+from zoo.validation import as_device, positive_float, positive_int
 
 from .presets import Presets
 from .stages import code_digest
@@ -541,6 +541,7 @@ def main(argv=None) -> None:
     parser.add_argument("--device", default="cpu", help="torch device for sampling and training: cpu, cuda, cuda:1, ...")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    as_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     train_for_model(args.model, args.out, args.triangles_preset, args.preset, args.n_per_shape, args.steps,

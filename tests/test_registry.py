@@ -183,6 +183,23 @@ def test_package_refuses_a_corrupt_fit_output(zoo_home):
         package_model(zoo_home / "nowhere", "1.0.0")
 
 
+def test_package_from_an_installed_wheel_refuses_to_write_into_it(zoo_home, monkeypatch):
+    """Installed (not a clone), the registry's default folders are the package's own: zoo package names the
+    variables that point it at folders of the user's, and writes nothing."""
+    from pipeline.package import package_model
+    from zoo import resources
+
+    fit = make_fit_output(zoo_home / "fits" / "mugs", "mugs", MUG_SHAPES)
+    monkeypatch.setattr(resources, "in_clone", lambda: False)
+    monkeypatch.delenv(registry.PRETRAINED_ENV)
+    before = sorted(p for p in Path(resources.PACKAGE).rglob("*") if "__pycache__" not in p.parts)
+    with pytest.raises(InputError, match=r"\$ZOO_PRETRAINED.*folders of yours"):
+        package_model(fit, "1.0.0")
+    assert sorted(p for p in Path(resources.PACKAGE).rglob("*") if "__pycache__" not in p.parts) == before
+    monkeypatch.setenv(registry.PRETRAINED_ENV, str(zoo_home / "mine"))
+    assert package_model(fit, "1.0.0").path == zoo_home / "mine" / "mugs-1.0.0"
+
+
 def test_license_follows_the_training_meshes():
     from pipeline.package import license_for
 

@@ -81,3 +81,47 @@ def test_import_zoo_imports_each_public_name_on_first_use():
     assert out.stdout.split() == ["[]", "True", "False", "zoo.solvers", "zoo.collision", "True"]
     with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
         zoo.not_a_name  # noqa: B018
+
+
+# -- devices: an unusable device is a typed error that says what to do, before any work -----------
+
+
+def test_a_cuda_device_without_a_cuda_build_is_a_device_error(monkeypatch):
+    from zoo.errors import DeviceError
+
+    monkeypatch.setattr(torch.version, "cuda", None)
+    monkeypatch.setattr(torch.version, "hip", None, raising=False)
+    with pytest.raises(DeviceError, match="built without CUDA.*--device cpu"):
+        v.as_device("cuda")
+    with pytest.raises(DeviceError):
+        zoo.load("mugs", device="cuda:0")  # before a file is read or a tensor moved
+    assert v.as_device("cpu") == torch.device("cpu")
+
+
+def test_a_gpu_index_past_the_last_and_a_bad_name_are_typed(monkeypatch):
+    from zoo.errors import DeviceError
+
+    monkeypatch.setattr(torch.version, "cuda", "12.4")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert v.as_device("cuda:1") == torch.device("cuda", 1)
+    with pytest.raises(DeviceError, match="2 GPU"):
+        v.as_device("cuda:2")
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    with pytest.raises(DeviceError, match="no GPU"):
+        v.as_device("cuda")
+    with pytest.raises(InputError, match="not a torch device"):
+        v.as_device("gpu-please")
+
+
+def test_zoo_fit_category_on_a_missing_gpu_prints_one_line_and_exits_2(monkeypatch, tmp_path):
+    from typer.testing import CliRunner
+
+    from cli.main import app, register_commands
+
+    monkeypatch.setattr(torch.version, "cuda", None)
+    monkeypatch.setattr(torch.version, "hip", None, raising=False)
+    register_commands()
+    done = CliRunner().invoke(app, ["fit-category", "mugs", "--device", "cuda", "--data", str(tmp_path)])
+    assert isinstance(done.exception, zoo.errors.DeviceError), done.output
+    assert not list(tmp_path.iterdir())

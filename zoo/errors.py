@@ -32,6 +32,10 @@ class MissingDependencyError(ZooError, ImportError):
     """An optional dependency is needed for this call but is not installed."""
 
 
+class DeviceError(ZooError, RuntimeError):
+    """A torch device that this machine or this torch build cannot use (no CUDA, no such GPU)."""
+
+
 def require(module: str, extra: str = "pipeline"):
     """Import an optional dependency, or say which package extra installs it."""
     import importlib

@@ -22,6 +22,7 @@ from pathlib import Path
 from .errors import ChecksumError, DataError, InputError, ModelNotFoundError
 from .files import CHECKSUMS, read_checksums, sha256_file, verify_directory
 from .resources import bundled
+from .validation import as_device
 
 MANIFESTS_ENV = "ZOO_MANIFESTS"
 PRETRAINED_ENV = "ZOO_PRETRAINED"
@@ -274,6 +275,7 @@ def load(spec: str | os.PathLike, device: str = "cpu", verify: bool = True):
 
 def load_registered(name: str, version: str | None = None, device: str = "cpu", verify: bool = True):
     """Load ``name`` at ``version`` (newest if None) from the bundled packages."""
+    as_device(device)  # an unusable device is a typed error before any file is read
     version, entry = resolve_version(name, version)
     path = package_dir(entry)
     if not path.is_dir():
@@ -289,6 +291,7 @@ def load_registered(name: str, version: str | None = None, device: str = "cpu", 
 
 def load_directory(path: str | os.PathLike, device: str = "cpu", verify: bool = True):
     """Load the package in ``path``; its own ``SHA256SUMS`` verifies it."""
+    as_device(device)
     path = Path(path).expanduser()
     if not path.is_dir():
         raise ModelNotFoundError(

@@ -14,13 +14,42 @@ import numbers
 
 import torch
 
-from .errors import InputError
+from .errors import DeviceError, InputError
 
 FLOATS = (torch.float32, torch.float64)
 
 # Coordinates this far below 0, or rows whose sum is this far from 1, are rejected as not barycentric;
 # closer ones (rounding from a softmax or from many convex combinations) are snapped back.
 SIMPLEX_TOL = 1e-4
+
+# -- devices -------------------------------------------------------------------------------------
+
+
+def as_device(device) -> torch.device:
+    """``device`` ("cpu", "cuda", "cuda:1", a torch.device) as a torch.device this machine can use.
+
+    A malformed name is an :class:`InputError`; a device that torch cannot use here (a CPU-only
+    build, no GPU, a GPU index past the last) a :class:`zoo.errors.DeviceError`, checked before any
+    tensor is moved (torch's own answer is an ``AssertionError`` deep inside the first copy).
+    """
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise InputError(f"device {device!r} is not a torch device name; use cpu, cuda or cuda:N") from exc
+    if dev.type == "cuda":
+        if torch.version.cuda is None and getattr(torch.version, "hip", None) is None:
+            raise DeviceError(f"device {device!r}: this torch {torch.__version__} is built without CUDA; use --device cpu, "
+                              "or install a CUDA build of torch (the command for your machine is on pytorch.org)")
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise DeviceError(f"device {device!r}: torch has CUDA but finds no GPU on this machine (check nvidia-smi and "
+                              "CUDA_VISIBLE_DEVICES); use --device cpu")
+        if dev.index is not None and dev.index >= count:
+            raise DeviceError(f"device {device!r}: this machine has {count} GPU(s), cuda:0 to cuda:{count - 1}; pick one of them")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise DeviceError(f"device {device!r}: MPS is not available on this machine; use --device cpu")
+    return dev
+
 
 # -- scalars -------------------------------------------------------------------------------------
 
