@@ -465,9 +465,12 @@ def stress_context(model: str | None = None, shape: str | None = None) -> dict:
 
 def run_case(name: str, fn: Callable, ctx: dict) -> dict:
     """One case's record ``{case, expected, observed, ok, seconds}``; an exception is a failure, recorded."""
+    from zoo.progress import activity
+
     t0 = time.perf_counter()
     try:
-        expected, observed, ok = fn(ctx)
+        with activity(f"stress case: {name}"):
+            expected, observed, ok = fn(ctx)
     except Exception as exc:  # noqa: BLE001 - a crash is a failed case, recorded
         expected, observed, ok = "no exception", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}", False
     return {"case": name, "expected": expected, "observed": _jsonable(observed), "ok": bool(ok), "seconds": time.perf_counter() - t0}

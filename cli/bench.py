@@ -132,6 +132,9 @@ def _run_sim(opts: BenchOptions) -> None:
 
     from rich.console import Console
 
+    from zoo.errors import require
+
+    require("mujoco", "sim")
     from benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
 
     console = Console(width=max(Console().width, 150))

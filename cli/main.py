@@ -12,7 +12,9 @@ import typer
 
 from zoo.errors import ZooError
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="Neural SDFs and amortized collision detection.")
+# rich_markup_mode=None: help texts print as written; under rich markup "[sim]" or "NAME[@VERSION]" vanished as tags.
+app = typer.Typer(no_args_is_help=True, add_completion=False, rich_markup_mode=None,
+                  help="Neural SDFs and amortized collision detection.")
 
 
 @app.callback()
@@ -29,7 +31,9 @@ def main(argv: list[str] | None = None) -> None:
     register_commands()
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
     try:
-        app(args=argv, standalone_mode=False)
+        code = app(args=argv, standalone_mode=False)  # a command's typer.Exit(n) comes back as n here, not raised
+        if isinstance(code, int) and not isinstance(code, bool) and code:
+            sys.exit(code)
     except ZooError as exc:
         if debug:
             raise

@@ -192,10 +192,10 @@ def test_package_from_an_installed_wheel_refuses_to_write_into_it(zoo_home, monk
     fit = make_fit_output(zoo_home / "fits" / "mugs", "mugs", MUG_SHAPES)
     monkeypatch.setattr(resources, "in_clone", lambda: False)
     monkeypatch.delenv(registry.PRETRAINED_ENV)
-    before = sorted(p for p in Path(resources.PACKAGE).rglob("*") if "__pycache__" not in p.parts)
+    before = sorted(p for p in resources.package_folder().rglob("*") if "__pycache__" not in p.parts)
     with pytest.raises(InputError, match=r"\$ZOO_PRETRAINED.*folders of yours"):
         package_model(fit, "1.0.0")
-    assert sorted(p for p in Path(resources.PACKAGE).rglob("*") if "__pycache__" not in p.parts) == before
+    assert sorted(p for p in resources.package_folder().rglob("*") if "__pycache__" not in p.parts) == before
     monkeypatch.setenv(registry.PRETRAINED_ENV, str(zoo_home / "mine"))
     assert package_model(fit, "1.0.0").path == zoo_home / "mine" / "mugs-1.0.0"
 

@@ -129,6 +129,7 @@ def test_the_bundled_demo_scene_loads_by_name_without_zoo_data_and_collides(tmp_
     scene = load_scene("demo-mug-rack")
     assert scene.name == "demo-mug-rack" and scene.mesh_label == "procedural:rack" and scene.method == "amortized"
     contacts = run_scene(scene)
+    assert set(scene.timings) >= {"first_collide_s", "collide_s"}  # the time of a warm call, and of the first
     assert contacts.n_candidates > len(contacts) > 50  # the handle's bar on the peg
     assert -2e-3 < float(contacts.depths.min()) < 0  # pressed about half a millimetre in, as the file says
     top_of_peg = contacts.points[:, 2] > 0.19  # the peg rises from z 0.193; the base and the post are far below

@@ -101,3 +101,47 @@ def test_zoo_fit_codes_cli_prints_one_error_line(name, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and str(path) in err[0], err
     assert "Traceback" not in "\n".join(err)
+
+
+def _zoo(args, capsys):
+    """`zoo ARGS` in this process: (exit code, stdout, stderr)."""
+    from cli.main import main
+
+    capsys.readouterr()
+    try:
+        main(args)
+        code = 0
+    except SystemExit as exc:
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_zoo_stress_sim_without_mujoco_names_the_extra_in_one_line(monkeypatch, tmp_path, capsys):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # import mujoco raises ImportError, as without sdfzoo[sim]
+    code, out, err = _zoo(["stress", "--sim", "--out", str(tmp_path / "s.json")], capsys)
+    assert code == 2 and "FAIL" not in out + err, out + err
+    assert err.strip().count("\n") == 0 and "sdfzoo[sim]" in err and "mujoco" in err
+    assert not (tmp_path / "s.json").exists()
+
+
+def test_zoo_help_keeps_its_brackets(capsys):
+    """Help texts print as written: rich markup took "[sim]" and "[@VERSION]" for tags and dropped them."""
+    code, out, _ = _zoo(["stress", "--help"], capsys)
+    assert code == 0
+    assert "sdfzoo[sim]" in out and "NAME[@VERSION]" in out
+
+
+def test_a_failed_stress_case_says_why_on_the_console(monkeypatch, tmp_path, capsys):
+    import benches.stress as stress
+
+    def broken(ctx):
+        raise RuntimeError("the reason it failed")
+
+    monkeypatch.setattr(stress, "CASES", [("a broken case", broken)])
+    code, out, err = _zoo(["stress", "--out", str(tmp_path / "s.json")], capsys)
+    assert code == 1 and "FAIL a broken case" in out
+    assert "RuntimeError: the reason it failed" in out and "0 passed, 1 failed" in out
+    assert "stress case: a broken case ..." in err  # its progress line (stderr is not a terminal here)

@@ -175,3 +175,18 @@ def test_bad_arguments_are_input_errors():
 def test_truncation_clamps_the_stored_values():
     v = VoxelSDF(zoo.Sphere(0.25), resolution=9, truncation=0.1)
     assert v.values.min().item() == pytest.approx(-0.1) and v.values.max().item() == pytest.approx(0.1)
+
+
+def test_the_grid_shows_its_progress_only_when_asked(capsys):
+    """zoo.collide builds the grid of "voxel-fw" on first use, the command's longest silent step: inside
+    zoo.progress.shown() (as the `zoo` command runs) a bar counts its chunks; a library call stays quiet."""
+    from zoo.progress import shown
+
+    VoxelSDF(zoo.Torus(), resolution=12, chunk=100)
+    assert "VoxelSDF" not in capsys.readouterr().out
+    with shown():
+        VoxelSDF(zoo.Torus(), resolution=12, chunk=100)
+    out = capsys.readouterr().out
+    assert "VoxelSDF 12x12x12 grid" in out and "18/18" in out  # ceil(1728 / 100) chunks, all done
+    VoxelSDF(zoo.Torus(), resolution=12, chunk=100, progress=True)
+    assert "18/18" in capsys.readouterr().out

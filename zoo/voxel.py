@@ -68,6 +68,7 @@ class VoxelSDF:
         max_bytes: int = DEFAULT_MAX_BYTES,
         truncation: float | None = None,
         device=None,
+        progress: bool | None = None,
     ):
         check_sdf(sdf)
         self.shape = resolution_per_axis(resolution)
@@ -80,7 +81,7 @@ class VoxelSDF:
         if chunk < 1:
             raise InputError(f"chunk must be a positive number of grid points per call, got {chunk}")
         device = torch.device("cpu") if device is None else torch.device(device)
-        self.values = _sample_grid(sdf, self.lo, self.spacing, self.shape, chunk, device)
+        self.values = _sample_grid(sdf, self.lo, self.spacing, self.shape, chunk, device, progress)
         if self.truncation is not None:
             self.values.clamp_(-self.truncation, self.truncation)
         self.bounds = (self.lo.float(), self.hi.float())
@@ -181,17 +182,24 @@ def _trilinear_grad(c: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return torch.stack([gx, gy, gz], dim=-1)
 
 
-def _sample_grid(sdf, lo, spacing, shape, chunk: int, device) -> torch.Tensor:
-    """Evaluate ``sdf`` at every grid point, ``chunk`` points per call: -> (nx, ny, nz) float32."""
+def _sample_grid(sdf, lo, spacing, shape, chunk: int, device, progress: bool | None = None) -> torch.Tensor:
+    """Evaluate ``sdf`` at every grid point, ``chunk`` points per call: -> (nx, ny, nz) float32.
+
+    A fine grid of a NeuralSDF is long work on a CPU: ``progress`` (default: :func:`zoo.progress.shown`)
+    shows a bar over the chunks."""
+    from .progress import task_bar, wanted
+
     nx, ny, nz = shape
     values = torch.empty(nx * ny * nz, dtype=torch.float32, device=device)
     lo32, h32 = lo.to(device, torch.float32), spacing.to(device, torch.float32)
-    with torch.no_grad():
-        for start in range(0, values.numel(), chunk):  # a loop over chunks, not points
+    starts = range(0, values.numel(), chunk)
+    with torch.no_grad(), task_bar(wanted(progress) and len(starts) > 1, f"VoxelSDF {nx}x{ny}x{nz} grid", len(starts)) as bar:
+        for start in starts:  # a loop over chunks, not points
             flat = torch.arange(start, min(start + chunk, values.numel()), device=device)
             ijk = torch.stack([flat // (ny * nz), (flat // nz) % ny, flat % nz], dim=-1)
             d = sdf(lo32 + ijk.to(torch.float32) * h32)
             values[start : start + len(flat)] = torch.as_tensor(d).reshape(-1).to(device, torch.float32)
+            bar.advance()
     if not bool(torch.isfinite(values).all()):
         raise InputError("the SDF returned NaN or Inf on its own grid; check its bounds and its evaluation")
     return values.reshape(shape)
