@@ -26,6 +26,7 @@ MUG_MODEL = "mugs"
 PREFERRED_MUGS = ("hoi4d_mug_0001",)  # scanned mugs in metres; any other shape works too
 RACK = {"height": 0.30, "post_radius": 0.012, "peg_length": 0.09, "peg_radius": 0.006, "peg_height": 0.20,
         "peg_angle_deg": 20.0, "base": 0.16, "max_edge": 0.006}  # zoo.parts.rack's, in metres
+CONTACT_ROWS = 15  # contacts printed; the JSON holds them all
 RACK_MUG_SIZE = 0.13  # the mug size (normalised cube side, metres) the rack's sizes suit
 
 
@@ -183,6 +184,19 @@ def error_vs_runtime(scene, iters=(1, 2, 5, 10, 20, 50), repeats: int = 3) -> li
     return rows
 
 
+def contacts_table(scene, contacts, rows: int = CONTACT_ROWS):
+    """A rich table of the first ``rows`` contacts (triangle, point, depth, normal), titled with the counts."""
+    from rich.table import Table
+
+    table = Table(title=f"{scene.name}: {len(contacts)} contacts, {contacts.n_candidates} candidates of {contacts.n_triangles} triangles")
+    for col in ("triangle", "point", "depth (mm)", "normal"):
+        table.add_column(col)
+    for t, p, d, n in list(zip(contacts.triangles, contacts.points, contacts.depths, contacts.normals))[:rows]:
+        table.add_row(str(int(t)), np.array2string(p.numpy(), precision=4, suppress_small=True), f"{1e3 * float(d):+.3f}",
+                      np.array2string(n.numpy(), precision=2))
+    return table
+
+
 def run_demo(out_dir: str = "out/demo") -> dict:
     from rich.console import Console
     from rich.table import Table
@@ -193,14 +207,9 @@ def run_demo(out_dir: str = "out/demo") -> dict:
     contacts = run_scene(scene)
     paths = write_outputs(scene, contacts, Path(out_dir))
 
-    table = Table(title=f"{scene.name}: {len(contacts)} contacts, {contacts.n_candidates} candidates of {contacts.n_triangles} triangles")
-    for col in ("triangle", "point (m)", "depth (mm)", "normal"):
-        table.add_column(col)
-    for t, p, d, n in list(zip(contacts.triangles, contacts.points, contacts.depths, contacts.normals))[:15]:
-        table.add_row(str(int(t)), np.array2string(p.numpy(), precision=4, suppress_small=True), f"{1e3 * float(d):+.3f}", np.array2string(n.numpy(), precision=2))
-    console.print(table)
-    if len(contacts) > 15:
-        console.print(f"... {len(contacts) - 15} more in {paths['json']}")
+    console.print(contacts_table(scene, contacts))
+    if len(contacts) > CONTACT_ROWS:
+        console.print(f"... {len(contacts) - CONTACT_ROWS} more in {paths['json']}")
 
     rows = error_vs_runtime(scene)
     et = Table(title="error against run time on the candidate triangles (medians of 3 calls)")

@@ -9,6 +9,7 @@ triangle (and per iteration), the median over batches of ``batch`` triangles (at
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import platform
@@ -22,11 +23,12 @@ import torch
 import zoo
 from pipeline.triangle_sampling import sample_constrained_triangles
 from zoo import solvers
-from zoo.files import atomic_write_text
+from zoo.files import atomic_path, atomic_write_text
 from zoo.progress import progress_bar
 
 FW_ITERS = (1, 2, 5, 10, 20, 50, 100)
 RESULT_NAME = "solvers.json"
+PNG_NAME = "solvers.png"
 
 
 def run_solver_benchmark(
@@ -71,7 +73,37 @@ def run_solver_benchmark(
     )
     path = Path(out_dir) / RESULT_NAME
     atomic_write_text(path, json.dumps(report, indent=2) + "\n")
+    if importlib.util.find_spec("matplotlib") is not None:  # sdfzoo[pipeline]; the JSON holds every number
+        error_runtime_plot(report, path.with_name(PNG_NAME))
     return path
+
+
+def error_runtime_plot(report: dict, path: Path) -> None:
+    """Mean and p90 optimality against time per triangle, one line per solver over its iteration counts, log-log."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for (solver, colour), q in ((pair, q) for pair in (("fw", "tab:blue"), ("pgd", "tab:green")) for q in ("mean", "p90")):
+        rows = [r for r in report["solvers"] if r["solver"] == solver]  # pgd: one row, its iterations run to convergence
+        if rows:
+            ax.plot([r["time_per_triangle_ms"] for r in rows], [max(r["optimality"][q], 1e-12) for r in rows],
+                    "o-" if q == "mean" else "o--", color=colour, label=f"{solver} ({q})")
+            for r in rows if q == "mean" else []:
+                ax.annotate(str(r["iters"] or r["iters_run"]), (r["time_per_triangle_ms"], max(r["optimality"][q], 1e-12)),
+                            fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time per triangle [ms] (labels: iterations)")
+    ax.set_ylabel("optimality (eq. 12)")
+    ax.set_title(f"error against run time, {report['config']['n_triangles']:,} triangles around {report['config']['sdf']}")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
 
 
 def measure_solvers(

@@ -53,7 +53,7 @@ def _run_solvers(opts: BenchOptions) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from benches.solvers import TABLE_HEADER, format_table, run_solver_benchmark
+    from benches.solvers import PNG_NAME, TABLE_HEADER, format_table, run_solver_benchmark
 
     path = run_solver_benchmark(
         n_triangles=opts.triangles, out_dir=opts.out, seed=opts.seed, threads=opts.threads, progress=opts.progress
@@ -76,7 +76,8 @@ def _run_solvers(opts: BenchOptions) -> None:
         f"reference: {ref['time_per_triangle_ms']:.3g} ms/triangle; minimum at a vertex {loc['vertex']:.1%}, "
         f"on an edge {loc['edge']:.1%}, inside the face {loc['face']:.1%}"
     )
-    console.print(f"written: {path}")
+    png = path.with_name(PNG_NAME)
+    console.print(f"written: {path}" + (f" and {png}" if png.is_file() else " (no PNG: pip install matplotlib, or sdfzoo[pipeline])"))
 
 
 def _run_scenes(opts: BenchOptions) -> None:

@@ -24,6 +24,9 @@ def collide(
     method: str = typer.Option(None, help="Override the scene's method: fw | pgd | voxel-fw | amortized."),
 ):
     """Detect contacts in a scene; print a table and write JSON and a PNG."""
+    from rich.console import Console
+
+    from benches.demo import CONTACT_ROWS, contacts_table
     from zoo.progress import shown
     from zoo.scenes import contacts_summary, load_scene, run_scene, write_outputs
 
@@ -34,6 +37,9 @@ def collide(
         contacts = run_scene(s)
     paths = write_outputs(s, contacts, out)
     summary = contacts_summary(s, contacts)
+    Console().print(contacts_table(s, contacts))
+    if len(contacts) > CONTACT_ROWS:
+        typer.echo(f"... {len(contacts) - CONTACT_ROWS} more in {paths['json']}")
     typer.echo(
         f"{s.name}: {summary['n_contacts']} contacts from {summary['n_candidates']} candidates of "
         f"{summary['n_triangles']} triangles in {_duration(s.timings['collide_s'])} ({s.method}; the first call, "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from .main import app
@@ -59,7 +61,7 @@ def list_command(all_versions: bool = typer.Option(False, "--all", help="Show ev
 
 @app.command()
 def info(spec: str = typer.Argument(..., help="NAME or NAME@X.Y.Z")):
-    """Show a model's manifest entry and where its model card is."""
+    """Show a model's model card and its manifest entry."""
     from rich.console import Console
 
     from pipeline.package import dumps_toml
@@ -72,6 +74,9 @@ def info(spec: str = typer.Argument(..., help="NAME or NAME@X.Y.Z")):
     console.print(f"package:    {found['path']}")
     console.print(f"model card: {found['model_card']}")
     console.print(f"load with:  zoo.load(\"{found['name']}@{found['version']}\")\n")
+    card = Path(found["model_card"])
+    typer.echo(card.read_text() if card.is_file() else f"(no model card at {card})")
+    console.print(f"\n[bold]manifest entry[/bold] ({found['manifest']})")
     typer.echo(dumps_toml(found["entry"]))
 
 

@@ -231,6 +231,8 @@ def test_cli_list_and_info(released):
     shown = runner.invoke(app, ["info", "mugs@1.9.0"])
     assert shown.exit_code == 0, shown.output
     assert "README.md" in shown.output and "sha256" in shown.output
+    card = (released / "pretrained" / "mugs-1.9.0" / "README.md").read_text()
+    assert card.strip() in shown.output  # the card itself, not only its path
 
 
 def test_list_metrics_cell_keeps_headlines_in_order():

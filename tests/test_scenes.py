@@ -136,6 +136,19 @@ def test_the_bundled_demo_scene_loads_by_name_without_zoo_data_and_collides(tmp_
     assert bool(top_of_peg.all())
 
 
+def test_zoo_collide_prints_the_contact_table_and_writes_json_and_png(tmp_path, capsys):
+    from cli.main import main
+
+    main(["collide", "demo-mug-rack", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    written = json.loads((tmp_path / "demo-mug-rack.json").read_text())
+    assert (tmp_path / "demo-mug-rack.png").stat().st_size > 10_000
+    assert "depth (mm)" in out and "normal" in out  # the README's contact table
+    first = written["contacts"][0]
+    assert f"{1e3 * first['depth']:+.3f}" in out and str(first["triangle"]) in out
+    assert f"{written['n_contacts'] - 15} more in" in out
+
+
 @pytest.mark.slow
 def test_the_demo_scene_file_holds_the_pose_hanging_pose_computes():
     from benches.demo import mug_rack_scene

@@ -632,6 +632,8 @@ def test_solver_benchmark_writes_its_json(tmp_path):
         assert "p50" in r["nme_edge_or_face"]
     means = [rows[("fw", k)]["optimality"]["mean"] for k in (1, 5, 20)]
     assert means[0] > means[1] > means[2]
+    png = path.with_name("solvers.png")  # the README's "(JSON, PNG)": error against run time
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
 
 def test_float32_frank_wolfe_rows_stay_on_the_simplex(sphere):
