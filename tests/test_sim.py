@@ -203,8 +203,8 @@ def test_slide_with_a_motor_and_mass_from_the_sdf():
 
 
 def test_bad_arguments_raise_typed_errors():
-    with pytest.raises(InputError, match="RK4"):
-        zoo.sim.Simulation(integrator="rk4")
+    with pytest.raises(InputError, match="integrator"):
+        zoo.sim.Simulation(integrator="verlet")
     with pytest.raises(InputError, match="friction cone"):
         zoo.sim.Simulation(cone="round")
     with pytest.raises(InputError, match="impratio"):

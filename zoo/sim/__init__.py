@@ -1,6 +1,8 @@
-"""Contact simulation on MuJoCo with sdfzoo's SDF-mesh contacts (the ``sim`` extra: pip install 'sdfzoo[sim]').
+"""Contact simulation on MuJoCo with sdfzoo's SDF contacts (the ``sim`` extra: pip install 'sdfzoo[sim]').
 
-``import zoo`` does not load this package; ``import zoo.sim`` needs ``mujoco``. See DESIGN.md's contract.
+``import zoo`` does not load this package; ``import zoo.sim`` needs ``mujoco``. The user's own model and loop:
+:func:`attach` (``world.step(data)`` or ``with world.hooked():``); a model built in Python or from a scene
+file: :class:`Simulation`. See the design's "zoo.sim" contract.
 """
 
 from __future__ import annotations
@@ -12,8 +14,9 @@ if not hasattr(require("mujoco", extra="sim"), "mj_addContact"):  # the Python b
                                  "pip install -U 'mujoco>=4'")
 
 from .simulation import Simulation, StepRecord  # noqa: E402
+from .world import World, attach  # noqa: E402
 
-__all__ = ["Simulation", "StepRecord", "load_scene"]
+__all__ = ["Simulation", "StepRecord", "World", "attach", "load_scene"]
 
 
 def load_scene(path, **overrides) -> Simulation:

@@ -40,7 +40,7 @@ class ContactRows:
         pos: (K, 3) midpoint between the mesh point and the SDF's surface.
         dist: (K,) signed distance, negative in penetration.
         frame: (K, 9) rows: the normal (from the SDF body to the mesh body), then two tangents.
-        geom: (K, 2) int32 carrier geoms: the SDF body's, then the mesh body's.
+        geom: (K, 2) int32 geoms: the SDF body's, then the other body's.
     """
 
     pos: np.ndarray
@@ -421,8 +421,9 @@ def as_numpy(contacts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return arr(contacts.points), arr(contacts.depths), normals
 
 
-def add_contacts(model, data, rows: ContactRows, friction: float, solref, solimp) -> int:
-    """Append ``rows`` to ``data.contact`` after mj_step1; returns how many were added.
+def add_contacts(model, data, rows: ContactRows, params) -> int:
+    """Append ``rows`` to ``data.contact`` (after MuJoCo's velocity stage) with one pair's mixed contact parameters
+    (:class:`zoo.sim.geoms.ContactParameters`); returns how many were added (fewer when the buffer is full).
 
     One template contact is appended per row by ``mj_addContact`` and the fields are then written
     as whole arrays (about 1 us per contact, against 9 us filling each contact on its own).
@@ -433,13 +434,15 @@ def add_contacts(model, data, rows: ContactRows, friction: float, solref, solimp
     if k == 0:
         return 0
     template = mujoco.MjContact()
-    template.dim = 3 if friction > 0 else 1  # a 3-dim cone with zero friction makes MuJoCo's acceleration non-finite
-    template.includemargin = 0.0  # a positive margin makes bodies hover at it
-    template.friction = [friction, friction, 0.005, 1e-4, 1e-4]
-    template.mu = friction
-    template.solref = solref
+    # a contact with friction needs a friction coefficient: a 3-dim cone with zero friction makes MuJoCo's
+    # acceleration non-finite
+    template.dim = params.condim if params.friction[0] > 0 else 1
+    template.includemargin = params.margin - params.gap
+    template.friction = list(params.friction)
+    template.mu = params.friction[0]
+    template.solref = list(params.solref)
     template.solreffriction = [0.0, 0.0]
-    template.solimp = solimp
+    template.solimp = list(params.solimp)
     template.exclude = 0
     template.efc_address = -1
     template.elem = [-1, -1]

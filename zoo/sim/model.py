@@ -1,10 +1,10 @@
 """Bodies and the MuJoCo model built from them.
 
 A :class:`Body` holds an SDF and/or a mesh (both in the body's frame), its mass properties, its
-initial pose and velocity, a joint to its parent (the world) and an optional drive. :func:`build_model`
-writes them as MJCF: each body gets one carrier geom that MuJoCo's own collision ignores
-(contype = conaffinity = 0); sdfzoo's contacts name it as their geom, which tells MuJoCo's solver
-which bodies a contact pushes.
+initial pose and velocity, a joint to its parent (the world) and an optional drive. :func:`add_body`
+writes one into an ``mujoco.MjSpec`` (empty, or an MJCF file's: :func:`new_spec`) with one mesh geom that
+MuJoCo draws and its own collision ignores (contype = conaffinity = 0): the body's mesh, or for an SDF
+body its surface extracted by marching cubes. :func:`zoo.sim.attach` collides the SDFs with them.
 
 Mass properties come from the geometry and a mass or a density: an SDF's inside volume is integrated
 on a grid over its ``bounds``; a mesh uses trimesh's mass properties (its convex hull where the mesh
@@ -14,7 +14,9 @@ does not enclose a volume); or ``inertia`` and ``com`` are given.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -151,12 +153,28 @@ def explicit_mass_properties(mass: float, inertia, com=None) -> MassProperties:
     return MassProperties(_mass(mass, None, 0.0), com, inertia)
 
 
-# -- MJCF ----------------------------------------------------------------------------------
+# -- the MuJoCo model ------------------------------------------------------------------------
+
+SDF_RGBA = (0.85, 0.55, 0.25, 1.0)
+MESH_RGBA = (0.6, 0.65, 0.75, 1.0)
 
 
-def mjcf_vector(values) -> str:
-    """An MJCF attribute value: the numbers of ``values`` (any shape), space-separated, to full precision."""
-    return " ".join(f"{float(v):.17g}" for v in np.asarray(values).reshape(-1))
+@dataclass
+class Settings:
+    """The model-wide settings a :class:`zoo.sim.Simulation` writes into its model; None keeps what the base
+    model (an MJCF the scene names) has, or MuJoCo's default where there is none.
+
+    ``friction``, ``solref`` and ``solimp`` are those of the geoms the simulation adds (MuJoCo mixes them
+    with the other geom's at each contact, ``mj_contactParam``)."""
+
+    dt: float | None = None
+    gravity: tuple | None = None
+    integrator: str | None = None
+    cone: str | None = None
+    impratio: float | None = None
+    friction: float = 1.0
+    solref: tuple = (0.02, 1.0)
+    solimp: tuple = (0.9, 0.95, 0.001, 0.5, 2.0)
 
 
 def quaternion(rotation: np.ndarray) -> np.ndarray:
@@ -168,75 +186,118 @@ def quaternion(rotation: np.ndarray) -> np.ndarray:
     return q
 
 
-def _body_xml(body: Body) -> str:
+INTEGRATORS = {"implicitfast": "mjINT_IMPLICITFAST", "euler": "mjINT_EULER", "implicit": "mjINT_IMPLICIT", "rk4": "mjINT_RK4"}
+CONES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
+MEMORY = 256 * 2**20  # bytes of MuJoCo's arena when the base model sets none: room for thousands of contacts
+
+
+def new_spec(mjcf: str | os.PathLike | None = None):
+    """An ``mujoco.MjSpec``: the MJCF file's, or an empty one."""
+    import mujoco
+
+    if mjcf is None:
+        return mujoco.MjSpec()
+    path = Path(mjcf)
+    if not path.is_file():
+        raise InputError(f"no MJCF file at {path}")
+    try:
+        return mujoco.MjSpec.from_file(str(path))
+    except Exception as exc:  # MuJoCo's parser: a ValueError with its own message
+        raise InputError(f"MuJoCo cannot read {path}: {exc}") from exc
+
+
+def apply_settings(spec, settings: Settings) -> None:
+    """Write ``settings``' model-wide options into ``spec`` (None keeps the spec's)."""
+    import mujoco
+
+    opt = spec.option
+    if settings.dt is not None:
+        opt.timestep = float(settings.dt)
+    if settings.gravity is not None:
+        opt.gravity = [float(g) for g in settings.gravity]
+    if settings.integrator is not None:
+        opt.integrator = getattr(mujoco.mjtIntegrator, INTEGRATORS[settings.integrator.lower()])
+    if settings.cone is not None:
+        opt.cone = getattr(mujoco.mjtCone, CONES[settings.cone])
+    if settings.impratio is not None:
+        opt.impratio = float(settings.impratio)
+    opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY  # Simulation.energy()
+    if spec.memory < 0:
+        spec.memory = MEMORY
+
+
+def add_body(spec, body: Body, settings: Settings, visual: tuple[np.ndarray, np.ndarray]) -> None:
+    """Add ``body`` to ``spec``'s world: its joint, inertia, drive and one mesh geom ``visual`` (vertices (V, 3),
+    faces (F, 3), body frame) that MuJoCo draws and does not collide (contype = conaffinity = 0): sdfzoo
+    collides it (:func:`zoo.sim.attach`)."""
+    import mujoco
+
     pose = np.asarray(body.pose, dtype=np.float64)
-    lines = [f'<body name="{body.name}" pos="{mjcf_vector(pose[:3, 3])}" quat="{mjcf_vector(quaternion(pose[:3, :3]))}">']
+    b = spec.worldbody.add_body(name=body.name, pos=pose[:3, 3].tolist(), quat=quaternion(pose[:3, :3]).tolist())
     if body.joint == "free":
-        lines.append(f'<freejoint name="{body.name}"/>')
+        b.add_freejoint(name=body.name)
     elif body.joint in ("hinge", "slide"):
-        lines.append(f'<joint name="{body.name}" type="{body.joint}" axis="{mjcf_vector(body.axis)}" pos="{mjcf_vector(body.anchor)}"/>')
+        kind = mujoco.mjtJoint.mjJNT_HINGE if body.joint == "hinge" else mujoco.mjtJoint.mjJNT_SLIDE
+        b.add_joint(name=body.name, type=kind, axis=body.axis.tolist(), pos=body.anchor.tolist())
     if body.mass is not None and body.joint != "fixed":
-        mp = body.mass
-        full = mp.inertia
-        lines.append(
-            f'<inertial pos="{mjcf_vector(mp.com)}" mass="{mp.mass:.17g}" fullinertia="'
-            f'{mjcf_vector([full[0, 0], full[1, 1], full[2, 2], full[0, 1], full[0, 2], full[1, 2]])}"/>'
-        )
-    # the carrier geom: MuJoCo's collision ignores it; sdfzoo's contacts name it
-    lines.append(f'<geom name="{body.name}" type="sphere" size="0.001" contype="0" conaffinity="0" group="3" mass="0"/>')
-    lines.append("</body>")
-    return "\n".join(lines)
+        mp, full = body.mass, body.mass.inertia
+        b.explicitinertial = True
+        b.mass = float(mp.mass)
+        b.ipos = mp.com.tolist()
+        b.fullinertia = [full[0, 0], full[1, 1], full[2, 2], full[0, 1], full[0, 2], full[1, 2]]
+    vertices, faces = visual
+    mesh = spec.add_mesh(name=body.name, uservert=np.asarray(vertices, dtype=np.float64).reshape(-1).tolist(),
+                         userface=np.asarray(faces, dtype=np.int64).reshape(-1).tolist())
+    mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # an open or flat mesh has no volume
+    b.add_geom(name=body.name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=body.name, contype=0, conaffinity=0, mass=0.0,
+               rgba=list(SDF_RGBA if body.sdf is not None else MESH_RGBA), friction=[settings.friction, 0.005, 1e-4],
+               solref=list(settings.solref), solimp=list(settings.solimp))
+    if body.drive:
+        _add_drive(spec, body)
 
 
-def _actuator_xml(body: Body) -> str:
+def _add_drive(spec, body: Body) -> None:
+    import mujoco
+
     drive = body.drive
-    if not drive:
-        return ""
     if body.joint not in ("hinge", "slide"):
         raise InputError(f"body {body.name!r}: a drive needs a hinge or slide joint, not {body.joint!r}")
     kind = drive.get("type", "motor")
+    actuator = spec.add_actuator(name=body.name, target=body.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
     if kind == "motor":
-        return f'<motor name="{body.name}" joint="{body.name}" gear="{float(drive.get("gear", 1.0)):.17g}"/>'
-    if kind == "velocity":
-        return f'<velocity name="{body.name}" joint="{body.name}" kv="{float(drive.get("kv", 100.0)):.17g}"/>'
-    raise InputError(f"body {body.name!r}: unknown drive type {kind!r}; use one of {DRIVES}")
+        actuator.set_to_motor()
+        actuator.gear = [float(drive.get("gear", 1.0)), 0, 0, 0, 0, 0]
+    elif kind == "velocity":
+        actuator.set_to_velocity(kv=float(drive.get("kv", 100.0)))
+    else:
+        raise InputError(f"body {body.name!r}: unknown drive type {kind!r}; use one of {DRIVES}")
 
 
-def mjcf(bodies: list[Body], dt: float, gravity, integrator: str, cone: str, impratio: float) -> str:
-    """The MJCF text of a simulation's bodies (fixed bodies are welded to the world)."""
-    actuators = "\n".join(a for a in (_actuator_xml(b) for b in bodies) if a)
-    return f"""<mujoco model="zoo.sim">
-<option timestep="{dt:.17g}" gravity="{mjcf_vector(gravity)}" integrator="{integrator}" cone="{cone}" impratio="{impratio:.17g}">
-  <flag energy="enable"/>
-</option>
-<size memory="256M"/>
-<worldbody>
-<geom name="world" type="sphere" size="0.001" contype="0" conaffinity="0" group="3"/>
-{chr(10).join(_body_xml(b) for b in bodies)}
-</worldbody>
-<actuator>
-{actuators}
-</actuator>
-</mujoco>"""
-
-
-def build_model(bodies: list[Body], dt: float, gravity, integrator: str, cone: str, impratio: float):
-    """(MjModel, MjData) of ``bodies``; fills each body's ids and sets initial velocities and drive targets."""
+def compile_spec(spec):
+    """(MjModel, MjData) of ``spec``, with MuJoCo's compile error as an InputError."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_string(mjcf(bodies, dt, gravity, integrator, cone, impratio))
-    data = mujoco.MjData(model)
+    try:
+        model = spec.compile()
+    except Exception as exc:
+        raise InputError(f"MuJoCo cannot compile the simulation's model: {exc}") from exc
+    return model, mujoco.MjData(model)
+
+
+def bind_bodies(bodies: list[Body], model, data) -> None:
+    """Fill each body's ids in ``model``, and set its initial velocity and drive target in ``data``."""
+    import mujoco
+
     for body in bodies:
         body.body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body.name)
-        body.geom_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, body.name)
-        if body.joint != "fixed":
-            joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, body.name)
+        body.geom_id = int(model.body_geomadr[body.body_id])
+        if body.joint != "fixed" and int(model.body_jntnum[body.body_id]):
+            joint = int(model.body_jntadr[body.body_id])
             body.qpos_adr, body.dof_adr = int(model.jnt_qposadr[joint]), int(model.jnt_dofadr[joint])
         if body.drive:
             body.actuator_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, body.name)
             data.ctrl[body.actuator_id] = float(body.drive.get("target", body.drive.get("ctrl", 0.0)))
         _set_velocity(body, data)
-    return model, data
 
 
 def _set_velocity(body: Body, data) -> None:

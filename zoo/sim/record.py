@@ -23,8 +23,9 @@ from ..files import atomic_path, atomic_write_text, sha256_file
 class Recorder:
     """Collects, after each step, the time, every body's pose (4, 4) and velocity (6,), and the contact points (K, 3)."""
 
-    def __init__(self, sim):
+    def __init__(self, sim, video=None, frame_every: int = 1):
         self.sim = sim
+        self.video, self.frame_every = video, max(1, int(frame_every))  # a zoo.sim.render.VideoRecorder, or None
         self.names = list(sim.bodies)
         self.times: list[float] = []
         self.poses: list[np.ndarray] = []  # each (B, 4, 4)
@@ -39,6 +40,8 @@ class Recorder:
         self.energy.append(sim.energy())
         points = sim.contacts.points if sim.contacts is not None else np.zeros((0, 3))
         self.contact_points.append(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        if self.video is not None and (len(self.times) - 1) % self.frame_every == 0:
+            self.video.capture(sim.data)
 
     def summary(self) -> dict:
         """Totals over the run: steps, contacts, deepest penetration, time per step, warnings."""
@@ -55,24 +58,31 @@ class Recorder:
             "finite": bool(all(np.isfinite(p).all() for p in self.poses)),
         }
 
-    def write(self, out_dir: str | os.PathLike, provenance: dict, animation: bool = True) -> dict[str, Path]:
+    def write(self, out_dir: str | os.PathLike, provenance: dict, animation: bool = True, video_format: str = "mp4") -> dict[str, Path]:
         """Write ``<name>.h5`` (trajectory, provenance attributes), ``<name>.json``, ``<name>.png`` and, with
-        ``animation``, ``<name>.gif`` (the bodies and their contacts, :mod:`zoo.sim.animation`)."""
+        ``animation``, the video: ``<name>.mp4`` or ``.gif`` from MuJoCo's renderer where the recorder has one,
+        else ``<name>.gif`` drawn with matplotlib (:mod:`zoo.sim.animation`)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        name = getattr(self.sim, "name", "simulation")
+        name = self.sim.name
         paths = {"h5": out / f"{name}.h5", "json": out / f"{name}.json", "png": out / f"{name}.png"}
         self._write_h5(paths["h5"], provenance)
         stats = {"provenance": provenance, "summary": self.summary(), "steps": [asdict(r) for r in self.sim.log]}
         atomic_write_text(paths["json"], json.dumps(stats, indent=1, default=_jsonable))
         self._write_png(paths["png"], name)
-        if animation and self.poses:
+        if animation and self.video is not None and self.video.frames:
+            paths["video"] = self.video.write(out / f"{name}.{video_format}", fps=min(30.0, self.fps()))
+        elif animation and self.poses:
             from .animation import write_animation
 
             paths["gif"] = out / f"{name}.gif"
             write_animation(paths["gif"], [self.sim.bodies[n] for n in self.names], np.stack(self.poses), self.contact_points,
                             np.asarray(self.times), title=f"{name} ({self.sim.method})")
         return paths
+
+    def fps(self) -> float:
+        """Frames per second that play the captured frames at a quarter of real time (a contact is quick)."""
+        return 0.25 / (self.sim.dt * self.frame_every)
 
     def _write_h5(self, path: Path, provenance: dict) -> None:
         from ..errors import require
@@ -136,10 +146,13 @@ def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
 
     import zoo
 
+    sim.build()
+    m = sim.model
     return {
         "zoo_version": zoo.__version__, "mujoco_version": mujoco.__version__,
         "scene": str(scene_path) if scene_path else "", "scene_sha256": sha256_file(scene_path) if scene_path else "",
-        "bodies": json.dumps(getattr(sim, "labels", {})), "method": sim.method, "dt": sim.dt, "margin": sim.margin,
-        "friction": sim.friction, "solref": json.dumps(list(sim.solref)), "integrator": sim.integrator,
-        "cone": sim.cone, "impratio": sim.impratio, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "bodies": json.dumps(sim.labels), "mjcf": str(sim.mjcf or ""), "method": sim.method, "dt": sim.dt,
+        "margin": sim.margin, "friction": sim.settings.friction, "solref": json.dumps(list(sim.settings.solref)),
+        "integrator": mujoco.mjtIntegrator(int(m.opt.integrator)).name, "cone": mujoco.mjtCone(int(m.opt.cone)).name,
+        "impratio": float(m.opt.impratio), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }

@@ -1,21 +1,30 @@
-"""Simulation scenes: a TOML file names bodies (an SDF and/or a mesh each), masses, joints, drives and a [sim] table.
+"""Simulation scenes: a TOML file names bodies (an SDF and/or a mesh each), masses, joints, drives and a [sim] table,
+optionally on top of an MJCF file (a robot, a gripper) whose bodies can be given SDFs.
 
 ```toml
 name = "sim-demo-mug-rack"
 method = "amortized"            # zoo.collide's narrow phase
 margin = 0.001
+# mjcf = "gripper.xml"          # start from this MJCF (beside the scene file); its options hold unless [sim] sets them
 
 [sim]
-dt = 0.002
+dt = 0.002                      # default 0.002 (or the MJCF's)
 seconds = 0.5                   # what `zoo simulate` runs unless --seconds says otherwise
 gravity = [0, 0, -9.81]
-friction = 1.0
+friction = 1.0                  # friction, solref, solimp: of the geoms the scene adds
 solref = [0.02, 1.0]
 solimp = [0.9, 0.95, 0.001, 0.5, 2.0]
-integrator = "implicitfast"     # or "euler"
+integrator = "implicitfast"     # or "euler", "implicit", "rk4" (default implicitfast, or the MJCF's)
 cone = "pyramidal"              # MuJoCo's friction cone, or "elliptic"; with impratio = 10 for a grasp
 impratio = 1.0
 coherence = true                # carry bounds and answers from step to step (zoo.CoherentCollider)
+camera = "side"                 # the video's camera: one of the MJCF's, or { lookat = [x, y, z], distance = 0.3,
+                                # azimuth = 135, elevation = -25 }; default: aimed at the SDF bodies
+
+[[control]]                     # waypoints (zoo.sim.control): mocap positions and actuator controls over time
+time = 0.0
+mocap = { hand_target = [0, 0, 0.13] }
+ctrl = { left = 0.015, right = 0.015 }
 
 [[bodies]]
 name = "mug"
@@ -32,7 +41,8 @@ mesh = { procedural = "rack" }  # as a collision scene's [mesh] (procedural, fil
 joint = "fixed"
 ```
 
-A collision scene (``[sdf]`` and ``[mesh]`` tables, as ``zoo collide`` reads) also loads: its SDF
+A ``[[bodies]]`` entry whose name is a body of the MJCF has only an ``sdf``: it is attached to that body
+(its joints, inertia and visual geom are the MJCF's). A collision scene (``[sdf]`` and ``[mesh]`` tables, as ``zoo collide`` reads) also loads: its SDF
 becomes a free body ``sdf`` (mass from ``[sim]``'s ``sdf_mass``, default 0.3 kg), raised by
 ``[sim]``'s ``drop`` (m, default 0), and its mesh a fixed body ``mesh``.
 """
@@ -48,8 +58,9 @@ from ..errors import InputError
 from ..scenes import _build_mesh, _build_sdf, pose_matrix, read_scene
 from .simulation import Simulation
 
-SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "cone", "impratio", "sdf_mass", "drop", "reduce", "refine", "coherence"}
-SCENE_ONLY = ("seconds", "drop", "sdf_mass")  # [sim] keys that are not Simulation's arguments
+SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "cone", "impratio", "sdf_mass", "drop",
+            "reduce", "refine", "coherence", "camera"}
+SCENE_ONLY = ("seconds", "drop", "sdf_mass", "camera")  # [sim] keys that are not Simulation's arguments
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
 
 
@@ -71,11 +82,11 @@ def simulation_settings(spec: dict, **overrides) -> dict:
     if unknown:
         raise InputError(f"unknown [sim] keys {sorted(unknown)}; known: {sorted(SIM_KEYS)}")
     settings = {
-        "dt": sim_spec.get("dt", 0.002), "gravity": sim_spec.get("gravity", (0.0, 0.0, -9.81)),
+        "dt": sim_spec.get("dt"), "gravity": sim_spec.get("gravity"),
         "method": spec.get("method", "amortized"), "margin": float(spec.get("margin", 1e-3)),
         "friction": sim_spec.get("friction", 1.0), "solref": sim_spec.get("solref", (0.02, 1.0)),
-        "solimp": sim_spec.get("solimp", (0.9, 0.95, 0.001, 0.5, 2.0)), "integrator": sim_spec.get("integrator", "implicitfast"),
-        "cone": sim_spec.get("cone", "pyramidal"), "impratio": sim_spec.get("impratio", 1.0),
+        "solimp": sim_spec.get("solimp", (0.9, 0.95, 0.001, 0.5, 2.0)), "integrator": sim_spec.get("integrator"),
+        "cone": sim_spec.get("cone"), "impratio": sim_spec.get("impratio"),
         "reduce": sim_spec.get("reduce", True), "refine": sim_spec.get("refine", True),
         "coherence": sim_spec.get("coherence", True),
     }
@@ -88,15 +99,17 @@ def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Sim
     sim_spec = dict(spec.get("sim", {}))
     sim_spec.update({k: overrides.pop(k) for k in SCENE_ONLY if overrides.get(k) is not None})
     settings = simulation_settings({**spec, "sim": sim_spec}, **overrides)
-    sim = Simulation(**settings)
+    mjcf = spec.get("mjcf")
+    sim = Simulation(**settings, mjcf=None if mjcf is None else base_dir / mjcf)
     sim.name = spec.get("name", "scene")
     sim.seconds = float(sim_spec.get("seconds", 1.0))
-    sim.labels = {}
+    sim.camera = sim_spec.get("camera")
+    sim.control = list(spec.get("control", []))
     bodies = spec.get("bodies")
     if bodies is None:
         bodies = _collision_scene_bodies(spec, sim_spec)
     if not bodies:
-        raise InputError("a simulation scene needs [[bodies]] (or a collision scene's [sdf] and [mesh])")
+        raise InputError("a simulation scene needs [[bodies]] (or a collision scene's [sdf] and [mesh]), or an mjcf and bodies to attach")
     for body in bodies:
         _add_body(sim, body, base_dir)
     return sim
@@ -131,6 +144,9 @@ def _add_body(sim: Simulation, spec: dict, base_dir: Path) -> None:
         mesh, label = _build_mesh(spec["mesh"], base_dir)
         labels.append(label)
     sim.labels[spec["name"]] = " + ".join(labels)
+    if sim.spec.body(spec["name"]) is not None:  # a body of the scene's MJCF: its SDF is attached to it
+        sim.add_body(spec["name"], sdf=sdf, mesh=mesh, mass=spec.get("mass"), pose=spec.get("pose"), velocity=spec.get("velocity"))
+        return
     sim.add_body(
         spec["name"], sdf=sdf, mesh=mesh, mass=spec.get("mass"), density=spec.get("density"), inertia=spec.get("inertia"),
         com=spec.get("com"), pose=pose_matrix(spec.get("pose")), joint=spec.get("joint", "free"),

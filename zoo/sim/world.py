@@ -1,0 +1,554 @@
+"""sdfzoo's contacts in a user's own MuJoCo model: :func:`attach` and the :class:`World` it returns.
+
+The user keeps their model and their loop. :func:`attach` names bodies of the model whose collision shape
+is an SDF (in the body's frame); each is collided with every geom MuJoCo would let it touch
+(:mod:`zoo.sim.geoms`), and MuJoCo keeps colliding every other pair itself. At every step, after MuJoCo's
+position and velocity stages, the World detects each pair's contacts (``zoo.collide`` or, along the
+trajectory, ``zoo.CoherentCollider``), keeps those MuJoCo's solver can use and reduces them to a manifold
+(:mod:`zoo.sim.contacts`), appends them with ``mj_addContact`` and rebuilds the constraint stage
+(``mj_makeConstraint``, ``mj_island``, ``mj_projectConstraint``, ``mj_referenceConstraint``: adding a
+contact clears the constraint rows). Two ways to run it, with identical trajectories:
+
+* ``world.step(data)`` in place of ``mujoco.mj_step(model, data)``: ``mj_step1``, the contacts, ``mj_step2``;
+* ``with world.hooked():`` makes every ``mujoco.mj_step`` and ``mj_forward`` of that model add them, from
+  MuJoCo's control callback (which runs after the velocity stage and before the solver; a callback the
+  user had is chained and called first). The managed viewer, gymnasium and dm_control loops call
+  ``mj_step`` and so get the contacts. RK4 runs this way too (its four stages each detect).
+
+Pairs: an SDF body meets a mesh geom through the model's compiled mesh, a box through its 12 triangles, a
+sphere, capsule, cylinder or ellipsoid through a tessellation within ``tolerance``, a plane through a patch
+of it laid under the SDF at each step (a plane is infinite), and another SDF body through that body's
+surface mesh (``surfaces`` names one, else it is extracted once from its SDF by marching cubes); of two SDF
+bodies, the one named first in ``bodies`` uses its SDF. Triangles larger than a quarter of the SDF are split
+once, at attach (``refine``). Fast impacts: a pair whose bodies could close more than the margin within a
+step is collided with a margin that covers it (speculative contacts).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+import zoo
+
+from ..errors import InputError
+from ..geometry import invert_pose
+from ..validation import non_negative_float
+from .contacts import (
+    REFINE_CELLS,
+    add_contacts,
+    as_numpy,
+    closing_in_time,
+    contact_rows,
+    face_normals,
+    facing_faces,
+    reduce_contacts,
+    refine_near,
+    refine_to_size,
+)
+from .geoms import (
+    ContactParameters,
+    body_geoms,
+    body_pose,
+    body_velocity,
+    excluded_bodies,
+    geom_parameters,
+    geom_pose,
+    geom_surface,
+    may_touch,
+    mixed_parameters,
+    native_colliders,
+    partner_geoms,
+)
+from .surface import CONTACT_RESOLUTION, surface_mesh
+
+# contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
+# copies of a vertex's contact by up to a tenth of the edge)
+MERGE_FRACTION = 0.05
+SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
+# a mesh that refining once would grow past this many faces (a large ground mesh under a small SDF) is
+# instead clipped and refined near the SDF at every step, from scratch (no temporal coherence for that pair)
+PREREFINE_MAX_FACES = 200_000
+TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within this of its surface
+
+
+@dataclass
+class SdfBody:
+    """A body of the model whose collision shape is an SDF (in the body's frame).
+
+    Attributes:
+        name, body: its name and id in the model.
+        geom: the geom sdfzoo's contacts name for it (the body's first geom): MuJoCo's solver takes the body
+            from it, and its friction, condim, solref, solimp, solmix, priority, margin and gap are the SDF's.
+        sdf: the SDF.
+        lo, hi: (3,) the box that holds its surface, body frame.
+        types: (contype, conaffinity) the SDF collides with.
+    """
+
+    name: str
+    body: int
+    geom: int
+    sdf: object
+    lo: np.ndarray
+    hi: np.ndarray
+    types: tuple[int, int]
+
+    @property
+    def reach(self) -> float:
+        """The farthest a point of its box lies from the body's origin."""
+        return float(np.linalg.norm(np.maximum(np.abs(self.lo), np.abs(self.hi))))
+
+    @property
+    def max_edge(self) -> float:
+        """The longest mesh edge refinement leaves near it (a thin plate: its side, not its thickness)."""
+        return float(np.median(self.hi - self.lo)) / REFINE_CELLS
+
+
+@dataclass
+class Pair:
+    """One SDF body and one thing it may touch.
+
+    Attributes:
+        sdf_body: the :class:`SdfBody`.
+        body: the other body's id; geom: the geom its contacts name.
+        params: the pair's mixed contact parameters.
+        frame: "geom" (the surface is in ``geom``'s frame) or "body" (in ``body``'s: another SDF body's surface).
+        vertices, faces: (V, 3), (F, 3) the other side's surface in that frame as given; None for a plane.
+        refined: (vertices, faces, origin (F',) input face of each, unit normals (F', 3)) refined once, or None
+            where the refinement happens near the SDF at each step (a large mesh) or not at all (a plane).
+        collider: the pair's ``zoo.CoherentCollider`` on ``refined`` (None without it).
+    """
+
+    sdf_body: SdfBody
+    body: int
+    geom: int
+    params: ContactParameters
+    frame: str
+    vertices: np.ndarray | None = None
+    faces: np.ndarray | None = None
+    refined: tuple | None = None
+    collider: object = None
+
+    @property
+    def is_plane(self) -> bool:
+        return self.vertices is None
+
+
+@dataclass
+class StepStats:
+    """What the last detection did: contacts added (after the reduction), found (before it), the deepest
+    penetration (m, >= 0), the largest margin used, whether a pair was speculative, its wall time (s) and
+    the contacts MuJoCo's full buffer dropped."""
+
+    contacts: int = 0
+    raw_contacts: int = 0
+    max_penetration: float = 0.0
+    margin: float = 0.0
+    speculative: bool = False
+    collide_s: float = 0.0
+    dropped: int = 0
+
+
+def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
+           reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
+           surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE) -> World:
+    """sdfzoo's contacts for the SDF bodies of a user's ``mujoco.MjModel`` (see the module docstring).
+
+    Args:
+        model: the user's ``mujoco.MjModel`` (any MJCF: robots, mocap, actuators, equality, options).
+        bodies: {body name: SDF in that body's frame}: any SDF (a NeuralShape, ``zoo.Sphere``, a
+            ``TransformedSDF``...). Each body needs a geom (its visual mesh) with contype = conaffinity = 0.
+        method: ``zoo.collide``'s narrow phase; "amortized" falls back to "fw" for an SDF without a detector.
+        margin: m; contacts are detected this far before touching (at least each pair's MuJoCo margin).
+        coherence: carry each pair's bounds and answers from step to step (``zoo.CoherentCollider``); False
+            collides every pair from scratch with ``zoo.collide``.
+        reduce: reduce contacts to a manifold per patch (False: every usable contact, for comparison).
+        refine: split triangles larger than a quarter of the SDF, once (False: the meshes as the model has them).
+        contype, conaffinity: the SDF's collision bits, as a geom's (MuJoCo's defaults).
+        surfaces: {SDF body name: mesh (trimesh or (V, F), body frame)} the surface another SDF body collides
+            with, instead of one extracted from its SDF.
+        include_geoms: names of geoms MuJoCo does not collide (contype = conaffinity = 0) that the SDF bodies
+            collide with all the same (a flat mesh MuJoCo cannot take as a collision mesh).
+        tolerance: m; how far a tessellated primitive's triangles may lie inside its true surface.
+    """
+    return World(model, bodies, method=method, margin=margin, coherence=coherence, reduce=reduce, refine=refine,
+                 contype=contype, conaffinity=conaffinity, surfaces=surfaces, include_geoms=include_geoms,
+                 tolerance=tolerance)
+
+
+class World:
+    """The SDF bodies of one ``mujoco.MjModel`` and their pairs; made by :func:`attach`.
+
+    Attributes:
+        model: the model.
+        bodies: {name: :class:`SdfBody`}.
+        pairs: every :class:`Pair` collided at each step.
+        contacts: ``zoo.Contacts`` that went into MuJoCo's solver at the last detection, world frame.
+        contact_geoms: (K, 2) int the geoms of each of those contacts (the SDF body's, the other's).
+        stats: :class:`StepStats` of the last detection.
+    """
+
+    def __init__(self, model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
+                 reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
+                 surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE):
+        import mujoco
+
+        if not isinstance(model, mujoco.MjModel):
+            raise InputError(f"attach needs a mujoco.MjModel, got {type(model).__name__}")
+        if not bodies:
+            raise InputError("attach needs at least one {body name: SDF}")
+        self.model = model
+        self.method = method
+        self.margin = non_negative_float(margin, "margin")
+        self.coherence, self.reduce, self.refine = bool(coherence), bool(reduce), bool(refine)
+        self.tolerance = float(tolerance)
+        include = {self._geom_id(name) for name in include_geoms}
+        self.bodies = {name: self._sdf_body(name, sdf, (int(contype), int(conaffinity))) for name, sdf in bodies.items()}
+        surfaces = dict(surfaces or {})
+        unknown = set(surfaces) - set(self.bodies)
+        if unknown:
+            raise InputError(f"surfaces names {sorted(unknown)}, which are not SDF bodies; SDF bodies: {sorted(self.bodies)}")
+        self.pairs = self._pairs(include, surfaces)
+        self.contacts = _concat_contacts([])
+        self.contact_geoms = np.zeros((0, 2), dtype=np.int32)
+        self.stats = StepStats(margin=self.margin)
+        self._hooks = 0
+
+    # -- building ----------------------------------------------------------------------------------
+
+    def _geom_id(self, name: str) -> int:
+        import mujoco
+
+        geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)
+        if geom < 0:
+            raise InputError(f"the model has no geom named {name!r}")
+        return geom
+
+    def _sdf_body(self, name: str, sdf, types: tuple[int, int]) -> SdfBody:
+        import mujoco
+
+        zoo.sdf.check_sdf(sdf)
+        body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if body < 0:
+            names = [self.model.body(i).name for i in range(self.model.nbody)]
+            raise InputError(f"the model has no body named {name!r}; its bodies: {names}")
+        geoms = body_geoms(self.model, body)
+        if not geoms:
+            raise InputError(f"body {name!r} has no geom: give it one (its visual mesh, contype=\"0\" conaffinity=\"0\"); "
+                             "sdfzoo's contacts name it, and MuJoCo's solver finds the body through it")
+        native = native_colliders(self.model, body)
+        if native:
+            raise InputError(f"body {name!r}'s geoms {native} still collide in MuJoCo's own collision, beside its SDF: "
+                             "set contype=\"0\" conaffinity=\"0\" on them (the SDF is the body's collision shape)")
+        lo, hi = (np.asarray(torch.as_tensor(b).detach().cpu(), dtype=np.float64).reshape(3) for b in sdf.bounds)
+        return SdfBody(name=name, body=body, geom=geoms[0], sdf=sdf, lo=lo, hi=hi, types=types)
+
+    def _pairs(self, include: set[int], surfaces: dict) -> list[Pair]:
+        import mujoco
+
+        model = self.model
+        if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT:
+            return []
+        sdf_bodies = list(self.bodies.values())
+        sdf_body_ids = {b.body for b in sdf_bodies}
+        excluded = excluded_bodies(model)
+        pairs = []
+        for index, sdf_body in enumerate(sdf_bodies):
+            own = geom_parameters(model, sdf_body.geom)
+            for geom in partner_geoms(model, sdf_body.body, sdf_body.types, sdf_body_ids, include):
+                params = mixed_parameters(model, own, geom_parameters(model, geom))
+                surface = geom_surface(model, geom, self.tolerance)
+                pairs.append(self._pair(sdf_body, int(model.geom_bodyid[geom]), geom, params, "geom", surface))
+            for other in sdf_bodies[index + 1:]:  # the earlier-named body's SDF meets the later one's surface
+                if not may_touch(model, sdf_body.body, sdf_body.types, other.body, other.types, excluded):
+                    continue
+                params = mixed_parameters(model, own, geom_parameters(model, other.geom))
+                surface = _mesh_pair(surfaces[other.name]) if other.name in surfaces else surface_mesh(other.sdf, CONTACT_RESOLUTION)
+                pairs.append(self._pair(sdf_body, other.body, other.geom, params, "body", surface))
+        return pairs
+
+    def _pair(self, sdf_body: SdfBody, body: int, geom: int, params: ContactParameters, frame: str, surface) -> Pair:
+        pair = Pair(sdf_body=sdf_body, body=body, geom=geom, params=params, frame=frame)
+        if surface is None:
+            return pair
+        pair.vertices, pair.faces = surface
+        refined = refine_to_size(pair.vertices, pair.faces, sdf_body.max_edge if self.refine else math.inf, PREREFINE_MAX_FACES)
+        if refined is not None:
+            vertices, faces, origin = refined
+            mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
+            pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
+                                                 coherence=self.coherence)
+            pair.refined = (vertices, faces, origin, face_normals(vertices[faces]))
+        return pair
+
+    def _method_for(self, sdf) -> str:
+        if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
+            return "fw"
+        return self.method
+
+    # -- running -----------------------------------------------------------------------------------
+
+    def step(self, data, nstep: int = 1) -> None:
+        """``nstep`` steps of ``mujoco.mj_step(model, data)`` with sdfzoo's contacts in the solver."""
+        import mujoco
+
+        m = self.model
+        for _ in range(int(nstep)):
+            if self._hooks or m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
+                with self.hooked():  # RK4's stages each run the control callback; nested hooks are one
+                    mujoco.mj_step(m, data)
+                continue
+            mujoco.mj_step1(m, data)
+            self.add_contacts(data)
+            mujoco.mj_step2(m, data)
+
+    @contextmanager
+    def hooked(self):
+        """Within it, every ``mujoco.mj_step`` / ``mj_forward`` of this model includes sdfzoo's contacts.
+
+        Installs MuJoCo's control callback (global to the process); a callback set before is called first,
+        and restored on exit.
+        """
+        import mujoco
+
+        if self._hooks:
+            yield self
+            return
+        previous = mujoco.get_mjcb_control()
+        address = self.model._address
+
+        def control(m, d):
+            if previous is not None:
+                previous(m, d)
+            if m._address == address:
+                self.add_contacts(d)
+
+        mujoco.set_mjcb_control(control)
+        self._hooks += 1
+        try:
+            yield self
+        finally:
+            self._hooks -= 1
+            mujoco.set_mjcb_control(previous)
+
+    def add_contacts(self, data) -> int:
+        """Detect at ``data``'s current position and velocity stages, append the contacts and rebuild the
+        constraint stage; returns how many were added. What ``step`` and the hook call between MuJoCo's
+        velocity stage and its solver; call it yourself only there."""
+        import mujoco
+
+        start = time.perf_counter()
+        rows, collected, geoms, stats = self._detect(data)
+        added = 0
+        for r, params in rows:
+            added += add_contacts(self.model, data, r, params)
+        wanted = sum(len(r) for r, _ in rows)
+        if added:
+            mujoco.mj_makeConstraint(self.model, data)
+            mujoco.mj_island(self.model, data)
+            mujoco.mj_projectConstraint(self.model, data)
+            mujoco.mj_referenceConstraint(self.model, data)
+        stats.contacts, stats.dropped = added, wanted - added
+        stats.collide_s = time.perf_counter() - start
+        self.stats = stats
+        self.contacts = _concat_contacts(collected)
+        self.contact_geoms = np.concatenate(geoms) if geoms else np.zeros((0, 2), dtype=np.int32)
+        return added
+
+    def reset(self) -> None:
+        """Forget what the colliders carried from step to step (after a reset of the data, say)."""
+        for pair in self.pairs:
+            if pair.collider is not None:
+                pair.collider.reset()
+
+    def collider_stats(self):
+        """``zoo.coherence.CoherenceStats`` summed over every pair's collider and call so far."""
+        from ..coherence import CoherenceStats
+
+        total = CoherenceStats()
+        for pair in self.pairs:
+            if pair.collider is not None:
+                total.add(pair.collider.stats)
+        return total
+
+    # -- detection ---------------------------------------------------------------------------------
+
+    def _detect(self, data):
+        rows, collected, geoms = [], [], []
+        stats = StepStats(margin=self.margin)
+        deepest = 0.0
+        for pair in self.pairs:
+            margin = max(self.margin, pair.params.margin)
+            closing = self._closing_distance(pair, data)
+            if closing > margin:  # would cross the margin in one step: see it coming
+                margin, stats.speculative = SPECULATIVE_FACTOR * closing, True
+            stats.margin = max(stats.margin, margin)
+            found = self._collide(pair, data, margin)
+            if found is None:
+                continue
+            contacts, keep, arrays = found
+            stats.raw_contacts += len(contacts)
+            if not len(keep):
+                continue
+            r = contact_rows(arrays, keep, (pair.sdf_body.geom, pair.geom))
+            rows.append((r, pair.params))
+            collected.append(_select(contacts, keep))
+            geoms.append(r.geom)
+            deepest = max(deepest, -float(r.dist.min()))
+        stats.max_penetration = deepest
+        return rows, collected, geoms, stats
+
+    def _other_pose(self, pair: Pair, data) -> np.ndarray:
+        return geom_pose(data, pair.geom) if pair.frame == "geom" else body_pose(data, pair.body)
+
+    def _closing_distance(self, pair: Pair, data) -> float:
+        """Upper bound (m) on how much closer the pair's surfaces can get in one step.
+
+        A contact lies within ``reach`` of the SDF body's origin, so within ``reach`` + |x_a - x_b| of the
+        other body's: each body's rotation moves it by at most its angular speed times that lever.
+        """
+        a = body_velocity(self.model, data, pair.sdf_body.body)
+        b = body_velocity(self.model, data, pair.body)
+        reach = pair.sdf_body.reach
+        lever = reach + float(np.linalg.norm(data.xpos[pair.sdf_body.body] - data.xpos[pair.body]))
+        linear = float(np.linalg.norm(a[:3] - b[:3]))
+        return (linear + reach * float(np.linalg.norm(a[3:])) + lever * float(np.linalg.norm(b[3:]))) * self.model.opt.timestep
+
+    def _collide(self, pair: Pair, data, margin: float):
+        """(zoo.Contacts in the world frame, kept indices, their :func:`as_numpy` arrays) of one pair, or None."""
+        sdf_body = pair.sdf_body
+        t_sdf, t_other = body_pose(data, sdf_body.body), self._other_pose(pair, data)
+        if pair.is_plane:
+            contacts, faces_world = self._collide_plane(pair, t_sdf, t_other, margin)
+        else:
+            world_lo, world_hi = _world_box(t_sdf, sdf_body.lo - margin, sdf_body.hi + margin)
+            mesh_lo, mesh_hi = _world_box(t_other, pair.vertices.min(axis=0), pair.vertices.max(axis=0))
+            if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
+                return None
+            if pair.collider is None:
+                contacts, faces_world = self._collide_refining_near(pair, t_sdf, t_other, margin)
+            else:
+                vertices, faces, origin, normals = pair.refined
+                contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
+                faces_world = normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
+                contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the surface's own faces
+        if contacts is None or len(contacts) == 0:
+            return None
+        points, depths, normals = as_numpy(contacts)
+        # the contacts MuJoCo can use, before the reduction picks among them: facing their faces, and touching or
+        # closing within the step (a separated one beyond that would only brake the bodies at a distance)
+        motion_a = (data.xpos[sdf_body.body].copy(), body_velocity(self.model, data, sdf_body.body))
+        motion_b = (data.xpos[pair.body].copy(), body_velocity(self.model, data, pair.body))
+        usable = facing_faces(normals, faces_world, depths) & closing_in_time(
+            points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
+        keep = np.nonzero(usable)[0]
+        if self.reduce and len(keep):
+            merge = MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
+            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
+        return contacts, keep, (points, depths, normals)
+
+    def _collide_refining_near(self, pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float):
+        """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a pair whose mesh is refined near
+        the SDF at this step, or (None, None) when no face reaches the SDF's box."""
+        sdf_body = pair.sdf_body
+        sdf_from_mesh = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_other  # rigid: a transpose, not a general inverse
+        local = pair.vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
+        max_edge = sdf_body.max_edge if self.refine else math.inf
+        local, faces, origin = refine_near(local, pair.faces, sdf_body.lo - margin, sdf_body.hi + margin, max_edge)
+        if len(faces) == 0:
+            return None, None
+        return self._collide_in_sdf_frame(pair, local, faces, origin, t_sdf, margin)
+
+    def _collide_plane(self, pair: Pair, t_sdf: np.ndarray, t_plane: np.ndarray, margin: float):
+        """The pair's contacts with a patch of its (infinite) plane under the SDF's box, at this step."""
+        sdf_body = pair.sdf_body
+        plane_from_sdf = invert_pose(torch.from_numpy(t_plane)).numpy() @ t_sdf
+        corners = _corners(sdf_body.lo, sdf_body.hi) @ plane_from_sdf[:3, :3].T + plane_from_sdf[:3, 3]
+        if corners[:, 2].min() > margin:
+            return None, None
+        cell = sdf_body.max_edge if self.refine else float(np.ptp(corners[:, :2], axis=0).max()) + 2 * margin
+        lo = np.floor((corners[:, :2].min(axis=0) - margin) / cell).astype(np.int64)
+        hi = np.ceil((corners[:, :2].max(axis=0) + margin) / cell).astype(np.int64)
+        vertices, faces = _grid(lo, hi, cell)
+        sdf_from_plane = invert_pose(torch.from_numpy(plane_from_sdf)).numpy()
+        local = vertices @ sdf_from_plane[:3, :3].T + sdf_from_plane[:3, 3]
+        return self._collide_in_sdf_frame(pair, local, faces, np.arange(len(faces)), t_sdf, margin)
+
+    def _collide_in_sdf_frame(self, pair: Pair, local: np.ndarray, faces: np.ndarray, origin: np.ndarray,
+                              t_sdf: np.ndarray, margin: float):
+        """``zoo.collide`` of the pair's SDF with a mesh given in the SDF's frame: (contacts in the world frame,
+        their faces' world normals (K, 3)); triangles index ``origin``'s faces."""
+        used, inverse = np.unique(faces, return_inverse=True)
+        mesh = (torch.as_tensor(local[used], dtype=torch.float32), torch.as_tensor(inverse.reshape(-1, 3)))
+        world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
+        contacts = zoo.collide(pair.sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin,
+                               method=self._method_for(pair.sdf_body.sdf))
+        faces_world = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ t_sdf[:3, :3].T  # (K, 3)
+        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]
+        return contacts, faces_world
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+
+
+def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
+    from .model import mesh_arrays
+
+    return mesh_arrays(mesh, "surface")
+
+
+def _corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of the box [lo, hi]."""
+    return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _grid(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """A flat grid in z = 0 over cells lo..hi (2,) int of side ``cell``: vertices (V, 3), faces (F, 3) facing +z."""
+    xs = cell * np.arange(lo[0], hi[0] + 1)
+    ys = cell * np.arange(lo[1], hi[1] + 1)
+    nx, ny = len(xs), len(ys)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    vertices = np.stack([gx.ravel(), gy.ravel(), np.zeros(nx * ny)], axis=1)
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
+    a = (i * ny + j).ravel()
+    b, c, d = a + ny, a + ny + 1, a + 1
+    faces = np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)])
+    return vertices, faces
+
+
+def _world_box(pose: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World AABB of the box [lo, hi] (body frame) under ``pose``."""
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    c = pose[:3, :3] @ centre + pose[:3, 3]
+    h = np.abs(pose[:3, :3]) @ half
+    return c - h, c + h
+
+
+def _select(contacts, keep: np.ndarray):
+    idx = torch.as_tensor(keep, dtype=torch.long)
+    return zoo.Contacts(points=contacts.points[idx], depths=contacts.depths[idx], normals=contacts.normals[idx],
+                        triangles=contacts.triangles[idx], bary=contacts.bary[idx], n_triangles=contacts.n_triangles,
+                        n_candidates=contacts.n_candidates, method=contacts.method, timings=contacts.timings)
+
+
+def _concat_contacts(parts):
+    if not parts:
+        z = torch.zeros(0, 3)
+        return zoo.Contacts(points=z, depths=torch.zeros(0), normals=z, triangles=torch.zeros(0, dtype=torch.long), bary=z)
+    if len(parts) == 1:
+        return parts[0]
+
+    def cat(key):
+        return torch.cat([getattr(p, key).to(parts[0].points.dtype) if key != "triangles" else p.triangles for p in parts])
+
+    return zoo.Contacts(points=cat("points"), depths=cat("depths"), normals=cat("normals"), triangles=cat("triangles"),
+                        bary=cat("bary"), n_triangles=sum(p.n_triangles for p in parts),
+                        n_candidates=sum(p.n_candidates for p in parts), method=parts[0].method)
+
+
+__all__ = ["attach", "World", "SdfBody", "Pair", "StepStats"]
