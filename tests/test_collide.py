@@ -570,3 +570,126 @@ def test_bad_meshes_and_sdfs_are_input_errors():
 
 def test_methods_constant_lists_every_method():
     assert set(METHODS) == {"fw", "pgd", "voxel-fw", "amortized"}
+
+
+# -- triangles far larger than the SDF ------------------------------------------------------
+
+# A 5 cm sphere 1 mm into the top (z = 0.01) of a 30 x 30 x 2 cm box of two triangles a face, at
+# the face's centre (on the diagonal both triangles share), off it, and near one of its corners.
+BIG_FACE_CENTRES = [(0.0, 0.0), (0.013, -0.021), (-0.061, 0.087), (0.12, 0.12), (-0.1, 0.04)]
+
+
+@pytest.mark.parametrize("method", ["fw", "pgd", "voxel-fw"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_sphere_1mm_into_a_two_triangle_face_is_found_at_1mm_by_every_method(method, dtype):
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.02))
+    vertices, faces = torch.as_tensor(box.vertices, dtype=dtype), torch.as_tensor(box.faces)
+    top = set(np.nonzero(box.face_normals[:, 2] > 0.99)[0].tolist())
+    for x, y in BIG_FACE_CENTRES:
+        sphere = zoo.Sphere(0.05, center=(x, y, 0.01 + 0.05 - 0.001))
+        c = zoo.collide(sphere, (vertices, faces), method=method)
+        exact, _ = sphere_reference(sphere.center.numpy(), 0.05, world_triangles(box)[c.triangles.numpy()])
+        assert len(c) >= 1 and set(c.triangles.tolist()) <= top, (x, y, c)
+        assert abs(float(c.depths.min()) + 1e-3) <= 5e-5, (x, y, c.depths)
+        np.testing.assert_allclose(c.depths.double().numpy(), exact, atol=5e-5)  # every row: its own triangle's minimum
+        assert c.depths.dtype == dtype and c.points.dtype == dtype
+        np.testing.assert_allclose(sphere(c.points.double()).numpy(), c.depths.double().numpy(), atol=1e-6)
+        bary_points = bary_to_points(torch.as_tensor(world_triangles(box))[c.triangles], c.bary.double())
+        np.testing.assert_allclose(bary_points.numpy(), c.points.double().numpy(), atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["fw", "pgd", "voxel-fw", "amortized"])
+def test_big_and_small_triangles_give_the_exact_minimum_of_a_sphere(method):
+    """Random triangles 0.5 to 20 times the sphere's size through it, and the same region as small triangles:
+    each triangle's depth is its exact minimum (closest point to the centre), within the method's error."""
+    sdf = ExactSphereDetector(**SPHERE) if method == "amortized" else zoo.Sphere(**SPHERE)
+    centre, radius = np.asarray(SPHERE["center"]), SPHERE["radius"]
+    g = np.random.default_rng(7)
+    for size in (0.5, 2.0, 6.0, 20.0):
+        tri = g.normal(size=(24, 3, 3)) * size * radius
+        tri = tri - tri.mean(axis=1, keepdims=True) + centre + g.uniform(-1, 1, size=(24, 1, 3)) * radius
+        c = zoo.collide(sdf, (tri.reshape(-1, 3), np.arange(72).reshape(24, 3)), margin=1e-3, method=method)
+        exact, _ = sphere_reference(centre, radius, tri)
+        expected = np.nonzero(exact <= 1e-3 - 1e-4)[0]
+        assert set(expected.tolist()) <= set(c.triangles.tolist()), (size, c)
+        # the methods' own error on pieces a quarter of the radius long, largest where the centre is near the plane
+        tolerance = {"fw": 8e-3, "pgd": 5e-3, "voxel-fw": 1e-2, "amortized": 1e-6}[method] * radius
+        np.testing.assert_allclose(c.depths.double().numpy(), exact[c.triangles.numpy()], atol=tolerance)
+        assert bool((c.depths.double().numpy() >= exact[c.triangles.numpy()] - 1e-6).all())  # attained values
+
+
+def test_a_box_sdf_resting_1mm_into_a_big_face_is_found_flat():
+    """zoo.Box's minimum over a big face parallel to its bottom is exactly its penetration, everywhere under it."""
+    box_sdf = zoo.Box(half_extents=(0.02, 0.03, 0.01), center=(0.05, -0.04, 0.01 + 0.01 - 0.001))
+    table = trimesh.creation.box(extents=(0.6, 0.6, 0.02))
+    for method in ("fw", "pgd", "voxel-fw"):
+        c = zoo.collide(box_sdf, table, method=method)
+        assert len(c) >= 1 and abs(float(c.depths.min()) + 1e-3) <= 5e-5, (method, c.depths)
+
+
+def test_large_triangle_pieces_cover_what_can_touch_and_are_small():
+    """cut_large's pieces: each at most PIECE_AT_MOST of the SDF's extent, inside its parent, and every
+    point of the parent within the margin of the sphere lies in some piece (checked on a dense sample)."""
+    from zoo.large_triangles import PIECE_AT_MOST, cut_large
+
+    sphere = zoo.Sphere(0.05, center=(0.01, 0.02, 0.04))
+    tri = torch.tensor([[[-0.4, -0.3, 0.0], [0.5, -0.2, 0.0], [0.0, 0.6, 0.0]]], dtype=torch.float64)
+    pieces = cut_large(sphere, tri, margin=1e-3)
+    assert pieces is not None and pieces.parent.tolist() == [0] * len(pieces.parent) and 4 <= len(pieces.parent) < 2000
+    assert float(torch.linalg.vector_norm(pieces.triangles[:, 1:] - pieces.triangles[:, :1], dim=-1).max()) <= PIECE_AT_MOST * 0.1 + 1e-12
+    assert bool((pieces.corners >= 0).all()) and torch.allclose(pieces.corners.sum(-1), torch.ones(()).double())
+    g = np.random.default_rng(0)
+    bary = g.dirichlet(np.ones(3), size=200_000)
+    points = bary @ tri[0].numpy()
+    touching = bary[(sphere(torch.as_tensor(points)) <= 1e-3).numpy()]
+    assert len(touching) > 100
+    # barycentrics of each touching point in each piece: non-negative in at least one
+    inv = torch.linalg.inv(pieces.corners.transpose(1, 2))  # piece-local = inv @ parent bary
+    local = torch.einsum("pij,nj->npi", inv, torch.as_tensor(touching))
+    assert bool((local >= -1e-9).all(dim=-1).any(dim=1).all())
+    assert cut_large(sphere, tri * 0.02, margin=1e-3) is None  # nothing that long: nothing to do
+
+
+def test_too_many_pieces_is_refused_not_solved_coarsely(monkeypatch):
+    import zoo.large_triangles
+
+    monkeypatch.setattr(zoo.large_triangles, "MAX_PIECES", 50)
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.02))
+    with pytest.raises(InputError, match="subdivide the mesh"):
+        zoo.collide(zoo.Sphere(0.05, center=(0, 0, 0.059)), box)
+
+
+def test_the_model_shape_on_a_two_triangle_plane_matches_a_dense_reference():
+    """The mugs model's shape over a plane of two triangles 5 times its size, 1% of its size into its
+    bottom: every method's depth is the NeuralSDF's minimum over the plane, found by a dense grid."""
+    shape = zoo.load("mugs").shape("hoi4d_mug_0001")
+    s = shape.similarity
+    g = torch.linspace(-0.5, 0.5, 201, dtype=torch.float64)
+    gx, gy = torch.meshgrid(g, g, indexing="ij")
+
+    def plane_minimum(z):  # normalised frame
+        points = torch.stack([gx.ravel(), gy.ravel(), torch.full_like(gx.ravel(), z)], -1)
+        return float(shape(torch.as_tensor(s.to_source(points.numpy()))).min()) * s.scale
+
+    lo, hi = -0.5, -0.3  # the plane height whose minimum is -0.01 (normalised units), by bisection: the
+    # minimum falls monotonically from +0.11 to -0.065 over this range (the mug's bottom)
+    for _ in range(30):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if plane_minimum(mid) > -0.01 else (lo, mid)
+    z = (lo + hi) / 2
+    reference = plane_minimum(z) / s.scale
+    corners = np.array([[-2.5, -2.5, z], [2.5, -2.5, z], [2.5, 2.5, z], [-2.5, 2.5, z]])
+    mesh = (s.to_source(corners), np.array([[0, 1, 2], [0, 2, 3]]))
+    for method in ("amortized", "fw", "pgd"):
+        c = zoo.collide(shape, mesh, margin=0.003 / s.scale, method=method)
+        assert len(c) >= 1, method
+        assert abs(float(c.depths.min()) - reference) <= 0.002 / s.scale, (method, float(c.depths.min()), reference)
+
+
+def test_the_coherent_collider_finds_the_big_face_too():
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.02))
+    sphere = zoo.Sphere(0.05, center=(0.013, -0.021, 0.059))
+    collider = zoo.CoherentCollider(sphere, box, margin=1e-3, method="fw")
+    for dz in (0.0, -2e-4, -4e-4):
+        c = collider(sdf_pose=torch.tensor([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, dz], [0, 0, 0, 1.0]]))
+        assert len(c) >= 1 and abs(float(c.depths.min()) - (-1e-3 + dz)) <= 5e-5, (dz, c.depths)

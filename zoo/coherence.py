@@ -48,7 +48,6 @@ from .bounds import LIPSCHITZ, cell_lower_bounds, rounding_slack
 from .collision import (
     _CLUSTER_CULL_MIN,
     Contacts,
-    _amortized_mesh,
     _cell_bounds,
     _contact_normals,
     _empty_contacts,
@@ -56,9 +55,9 @@ from .collision import (
     _iters,
     _mesh_arrays,
     _method,
-    _narrow_phase,
     _voxel_of,
     collide,
+    solve_candidates,
 )
 from .errors import InputError
 from .geometry import bary_to_points, edge_lengths, invert_pose, transform_points, transform_vectors
@@ -605,11 +604,8 @@ class CoherentCollider:
         return moved <= WARM_REACH * edge_lengths(local[self.faces[faces]]).amax(dim=-1)
 
     def _cold(self, solve_sdf, local, faces, tri, f_exact, margin) -> tuple[torch.Tensor, torch.Tensor]:
-        """collide's narrow phase on new candidates: bary (N, 3), depths (N,) (NaN where not evaluated)."""
-        if self.method == "amortized" and callable(getattr(self.sdf, "detect_mesh", None)):
-            return _amortized_mesh(self.sdf, local, faces, tri, f_exact, margin, self.polish)
-        bary = _narrow_phase(solve_sdf, self.sdf, tri, self.method, self.iters)
-        return bary, torch.full_like(tri[:, 0, 0], torch.nan)
+        """collide's narrow phase on new candidates (large triangles on their pieces): bary (N, 3), depths (N,)."""
+        return solve_candidates(self.sdf, solve_sdf, local, faces, f_exact, margin, self.method, self.iters, self.polish)
 
     def _warm(self, solve_sdf, local, faces, tri, start, vertex_values, margin):
         """Warm-started answers from the last barycentrics ``start`` (W, 3): bary, depths and gradients at them, and

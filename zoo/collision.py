@@ -44,6 +44,7 @@ import torch
 from .bounds import cell_lower_bounds, rounding_slack
 from .errors import InputError
 from .geometry import bary_to_points, faces_touching_box, invert_pose, transform_points, transform_vectors, unique_rows
+from .large_triangles import best_pieces, cut_large
 from .sdf import check_sdf
 from .validation import as_faces, as_points, as_pose, as_triangles, int_at_least, mesh_pair, non_negative_float
 
@@ -264,16 +265,9 @@ def collide(
         return empty
     solve_sdf = _voxel_of(sdf, voxel_resolution) if method == "voxel-fw" else sdf
     with torch.no_grad():
-        depths = None
-        if method == "amortized" and callable(getattr(sdf, "detect_mesh", None)):
-            bary, depths = _amortized_mesh(sdf, local, faces[candidates], tri, f_vertices, margin, polish)
-        else:
-            bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
-        if refine:
-            bary, depths = _solvers().frank_wolfe(solve_sdf, tri, iters=refine, init=bary), None
+        bary, depths = solve_candidates(sdf, solve_sdf, local, faces[candidates], f_vertices, margin, method, iters,
+                                        polish, refine)
         points = bary_to_points(tri, bary)
-        if depths is None:
-            depths = torch.as_tensor(solve_sdf(points)).reshape(-1).to(tri)
     keep = depths <= margin
     t2 = time.perf_counter()
     normals = _contact_normals(solve_sdf, points[keep])  # gradients only where there is a contact
@@ -289,6 +283,45 @@ def collide(
         method=method,
         timings={"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2},
     )
+
+
+def solve_candidates(sdf, solve_sdf, local: torch.Tensor, faces: torch.Tensor, f_vertices: torch.Tensor, margin: float,
+                     method: str, iters: int | None, polish: bool = True, refine: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The narrow phase on the candidate faces (C, 3) into ``local`` (V, 3) (the SDF's frame): bary (C, 3), depths (C,).
+
+    ``f_vertices`` (V,): f at ``local`` where the broad phase has it (NaN elsewhere). Triangles far larger
+    than the SDF are solved on their pieces near it (:mod:`zoo.large_triangles`), each keeping its lowest
+    piece's answer; a triangle with no piece left gets its centroid and, as depth, a lower bound of f
+    over it that exceeds the margin. Otherwise depths are ``solve_sdf`` at the answers.
+    """
+    tri = local[faces]
+    pieces = cut_large(sdf, tri, margin, f_vertices[faces])
+    if pieces is not None:  # the pieces as a mesh of their own: their corners, with the values the cut evaluated
+        local, inverse = unique_rows(pieces.triangles.reshape(-1, 3))
+        f_vertices = torch.full(local.shape[:1], math.nan, dtype=local.dtype, device=local.device)
+        known = ~torch.isnan(pieces.values.reshape(-1))
+        f_vertices[inverse[known]] = pieces.values.reshape(-1)[known]
+        faces, tri = inverse.reshape(-1, 3), pieces.triangles
+        if tri.shape[0] == 0:  # every piece proven above the margin
+            return torch.full((pieces.floor.shape[0], 3), 1 / 3, dtype=tri.dtype, device=tri.device), pieces.floor
+    depths = None
+    if method == "amortized" and callable(getattr(sdf, "detect_mesh", None)):
+        bary, depths = _amortized_mesh(sdf, local, faces, tri, f_vertices, margin, polish)
+    else:
+        bary = _narrow_phase(solve_sdf, sdf, tri, method, iters)
+    if refine:
+        bary, depths = _solvers().frank_wolfe(solve_sdf, tri, iters=refine, init=bary), None
+    if depths is None:
+        depths = torch.as_tensor(solve_sdf(bary_to_points(tri, bary))).reshape(-1).to(tri)
+    if pieces is None:
+        return bary, depths
+    best = best_pieces(depths, pieces.parent, pieces.floor.shape[0])
+    found = (best >= 0).nonzero().squeeze(-1)
+    parent_bary = torch.full((pieces.floor.shape[0], 3), 1 / 3, dtype=tri.dtype, device=tri.device)
+    parent_bary[found] = pieces.to_parent(best[found], bary[best[found]])
+    parent_depths = pieces.floor.clone()
+    parent_depths[found] = torch.minimum(depths[best[found]], pieces.floor[found])  # the floor only where above the margin
+    return parent_bary, parent_depths
 
 
 def _amortized_mesh(sdf, local: torch.Tensor, faces: torch.Tensor, tri: torch.Tensor, f_vertices: torch.Tensor,
