@@ -317,24 +317,12 @@ def fit_codes(model_spec: str, mesh: str | os.PathLike, out: str | os.PathLike |
     metrics = evaluate_shape(shape, load_mesh(mesh), EvalConfig(n_near=5_000, n_uniform=5_000))
     summary = {"model": f"{model.name}@{model.version}", "mesh": str(mesh), "shape": shape.name,
                "fit_seconds": seconds, **{k: metrics[k] for k in ("near_p50", "near_p90", "sign_agreement")}}
+    shape.fit["seconds"] = seconds
+    shape.metrics = {k: metrics[k] for k in ("near_p50", "near_p90", "sign_agreement", "size")}
     if out is not None:
-        save_shape(shape, out, summary)
+        shape.save(out)
         summary["out"] = str(out)
     return summary
-
-
-def save_shape(shape, path: str | os.PathLike, summary: dict | None = None) -> Path:
-    """Write one fitted shape's code cloud and similarity as safetensors (metadata: model, similarity)."""
-    from safetensors.torch import save_file
-
-    path = Path(path)
-    meta = {"shape": shape.name, "similarity": shape.similarity.to_json(),
-            "model": f"{shape.model.name}@{shape.model.version}" if shape.model is not None else "",
-            "summary": json.dumps(summary or {}, sort_keys=True)}
-    with atomic_path(path) as tmp:
-        save_file({"codes": shape.codes.float().contiguous().cpu(), "positions": shape.positions.float().contiguous().cpu()},
-                  str(tmp), metadata=meta)
-    return path
 
 
 # --------------------------------------------------------------------------- detector stages (issue 4)

@@ -24,7 +24,7 @@ _EXPORTS = {
     "Contacts": "collision", "collide": "collision",
     "Model": "model",
     "NeuralSDF": "neural", "NeuralShape": "neural",
-    "list_models": "registry", "load": "registry",
+    "list_models": "registry", "load": "registry", "load_shape": "shape_file",
     "VoxelSDF": "voxel",
 }
 _SUBMODULES = ("errors", "geometry", "solvers")

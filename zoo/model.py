@@ -84,8 +84,11 @@ class Model:
         """Fit an unseen mesh: normalise and sample it, then optimise a fresh code cloud, decoder frozen.
 
         ``up`` is the mesh's up axis ("z", "y", ...). Returns a NeuralShape in the mesh's frame
-        and units (attached to this model, so ``detect`` works on it).
+        and units (attached to this model, so ``detect`` works on it; ``shape.fit`` records the
+        mesh's sha256 and these arguments; ``shape.save(path)`` keeps it). Sampling exact signed
+        distances needs libigl, from the ``sdfzoo[pipeline]`` extra.
         """
+        from .files import sha256_file
         from .meshes import load_mesh, normalise, sample_sdf
 
         mesh_path = Path(mesh_path)
@@ -95,7 +98,11 @@ class Model:
                                           seed=seed, points_per_iter=points_per_iter, lr=lr,
                                           lr_positions=lr_positions, clamp=self.config.get("fit", {}).get("clamp", 0.1),
                                           progress=progress)
-        return NeuralShape(name or mesh_path.stem, self.sdf.decoder, self.sdf.config, codes, positions, similarity, self)
+        shape = NeuralShape(name or mesh_path.stem, self.sdf.decoder, self.sdf.config, codes, positions, similarity, self)
+        shape.fit = {"mesh": mesh_path.name, "mesh_sha256": sha256_file(mesh_path), "up": str(up), "iters": int(iters),
+                     "seed": int(seed), "n_points": int(n_points), "points_per_iter": int(points_per_iter),
+                     "lr": float(lr), "lr_positions": float(lr_positions)}
+        return shape
 
     # ------------------------------------------------------------------ detection
 

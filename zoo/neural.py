@@ -411,8 +411,18 @@ class NeuralShape(SDFBase):
         self.positions = positions.detach()  # (K, 3)
         self.similarity = similarity if similarity is not None else Similarity.identity()
         self.model = model
+        self.fit: dict = {}  # how the codes were fitted (Model.fit_codes), saved with them
+        self.metrics: dict = {}  # how well (zoo fit-codes), saved with them
         self._copies: dict = {}
         self.bounds = self._source_bounds()
+
+    def save(self, path, fit: dict | None = None, metrics: dict | None = None):
+        """Write this shape's codes (K, C) and positions (K, 3) with its model's name@version and decoder
+        sha256, its similarity, ``fit`` and ``metrics`` (default: the shape's own) as one safetensors file;
+        ``zoo.load_shape(path)`` reads it back. Returns the path. See :mod:`zoo.shape_file`."""
+        from .shape_file import save_shape
+
+        return save_shape(self, path, fit, metrics)
 
     # ---- frames
 
@@ -609,8 +619,10 @@ class NeuralShape(SDFBase):
         """A copy whose tensors live on ``device`` (inputs on other devices are handled too)."""
         import copy
 
-        return NeuralShape(self.name, copy.deepcopy(self.decoder).to(device), self.config, self.codes.to(device),
-                           self.positions.to(device), self.similarity, self.model)
+        moved = NeuralShape(self.name, copy.deepcopy(self.decoder).to(device), self.config, self.codes.to(device),
+                            self.positions.to(device), self.similarity, self.model)
+        moved.fit, moved.metrics = dict(self.fit), dict(self.metrics)
+        return moved
 
     def __repr__(self):
         return f"NeuralShape({self.name!r}, n_codes={self.config.n_codes}, scale={self.similarity.scale:.6g})"

@@ -8,7 +8,9 @@ refine = 0                # FW steps warm-started from the method's answer
 
 [sdf]
 model = "mugs"            # a packaged model by name (zoo.load), with
-shape = "hoi4d_mug_0001"  # one of its shapes; or `fit = "new_mug.obj"` to fit_codes a mesh
+shape = "hoi4d_mug_0001"  # one of its shapes; or `fit = "new_mug.obj"` to fit_codes a mesh (every load)
+# codes = "new_mug.safetensors"   # or a shape fitted once and saved (shape.save, `zoo fit-codes --out`):
+#                                 # loads the model it names, or `model`'s if given (refused if not the same)
 # analytic = "sphere", params = { radius = 0.05 }   # an analytic SDF instead of a model
 pose = { translation = [0, 0, 0], rotation_deg = [0, 0, 0] }   # xyz Euler angles, degrees; or a 4x4 list
 
@@ -154,8 +156,12 @@ def _build_sdf(spec: dict, base_dir: Path):
         if kind not in ANALYTIC:
             raise InputError(f"unknown analytic SDF {kind!r}; choose one of {sorted(ANALYTIC)}")
         return ANALYTIC[kind](**spec.get("params", {})), kind
+    if "codes" in spec:  # a shape file (shape.save, `zoo fit-codes --out`): its own model unless `model` names one
+        codes_path = _resolve_file(spec["codes"], base_dir)
+        shape = zoo.load_shape(codes_path, model=spec.get("model"))
+        return shape, f"{shape.model.name}@{shape.model.version}:{codes_path.name}"
     if "model" not in spec:
-        raise InputError("[sdf] needs `model` (with `shape` or `fit`) or `analytic`")
+        raise InputError("[sdf] needs `model` (with `shape` or `fit`), `codes` (a saved shape file) or `analytic`")
     model = zoo.load(spec["model"])
     if "fit" in spec:
         mesh_path = _resolve_file(spec["fit"], base_dir)
@@ -189,7 +195,7 @@ def _resolve_file(name: str, base_dir: Path) -> Path:
     for c in candidates:
         if c.is_file():
             return c
-    raise DataError(f"mesh file {name!r} not found (looked in {', '.join(str(c) for c in candidates)}); set ZOO_DATA or fix the path")
+    raise DataError(f"file {name!r} not found (looked in {', '.join(str(c) for c in candidates)}); set ZOO_DATA or fix the path")
 
 
 def run_scene(scene: Scene, warm: bool = True) -> zoo.Contacts:
