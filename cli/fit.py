@@ -48,7 +48,7 @@ def fit_category(
 def fit_codes(
     model: str = typer.Argument(..., help="A model: NAME, NAME@X.Y.Z, a package directory or hf-hub:ORG/NAME@TAG."),
     mesh: str = typer.Argument(..., help="The unseen mesh (.obj, .ply, .stl, .off)."),
-    out: str = typer.Option(None, "--out", help="Write the fitted code cloud here (safetensors)."),
+    out: str = typer.Option(None, "--out", help="Write the fitted shape here (safetensors, with its model and accuracy): zoo.load_shape(OUT) or a scene's [sdf] codes = OUT reads it."),
     iters: int = typer.Option(500, "--iters", help="Adam iterations on the code cloud (decoder frozen)."),
     up: str = typer.Option("z", "--up", help="The mesh's up axis: x, y, z, -x, -y, -z."),
     seed: int = typer.Option(0, "--seed"),
