@@ -177,7 +177,7 @@ def model_from_fit(path: Path, run: FitRun):
 
     from .samples import read_samples
 
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = torch.load(path, map_location="cpu", weights_only=True)  # tensors, dicts, lists: no pickle
     config = FitConfig.from_dict(state["config"])
     sdf = NeuralSDF(config.sdf, len(state["stems"]))
     sdf.load_state_dict(state["model"])

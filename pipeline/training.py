@@ -74,7 +74,7 @@ class Checkpoint:
         if self.path is None or not self.path.is_file():
             return None
         try:
-            state = torch.load(self.path, map_location=map_location, weights_only=False)
+            state = torch.load(self.path, map_location=map_location, weights_only=True)  # tensors and dicts: no pickle
         except Exception as exc:  # torn or foreign: any reader error means the same, it cannot be resumed
             return self._discard(f"it cannot be read ({type(exc).__name__}: {exc})")
         if not isinstance(state, dict) or state.get("fingerprint") != self.fingerprint:

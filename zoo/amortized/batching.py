@@ -11,7 +11,7 @@ from .points import PointTable
 from .polish import POLISH_ROUNDS, polish
 from .subdivision import BISECTION_LEVEL, grid_barycentrics, to_parent
 
-NETWORK_CHUNK = 4096  # pieces per network call (cache-sized: ~5% faster than one call on 16k)
+NETWORK_CHUNK = 4096  # default pieces per network call: cache-sized (docs/measurements.md)
 
 
 def answer_pieces(detector: AmortizedDetector, shape, tri_n, table: PointTable, pieces: list, best: BestSoFar,
@@ -74,7 +74,7 @@ def network_answers(detector: AmortizedDetector, table: PointTable, idx: torch.T
     the model's estimate of the SDF there (P,), or None for a head without one."""
     param = next(detector.parameters())
     answers, estimates = [], []
-    for i in idx.split(min(chunk, NETWORK_CHUNK)):
+    for i in idx.split(chunk):
         vsdf = table.f[i].to(param) if detector.vertex_sdf else None
         with torch.no_grad():
             bary, value = detector.predict(table.coords[i].to(param), table.features(i).to(param), vsdf)

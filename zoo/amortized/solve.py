@@ -12,8 +12,9 @@ from ..bounds import cell_lower_bounds
 from ..detector import AmortizedDetector
 from ..errors import InputError
 from ..geometry import edge_lengths, transform_points, unique_rows
-from ..validation import as_triangles
+from ..validation import as_triangles, int_at_least
 from . import batching
+from .batching import NETWORK_CHUNK
 from .best import BestSoFar
 from .points import PointTable
 from .polish import settled_at_vertex
@@ -41,16 +42,17 @@ class SolveOptions:
     * ``cutoff`` (source frame, needs ``vertex_check``): triangles and cells whose lower bound
       (:func:`zoo.bounds.cell_lower_bounds`) exceeds it are not solved; such a row's value is only
       proven to be > cutoff (what collide needs of a triangle that is no contact);
-    * ``chunk``: pieces per network call at most.
+    * ``chunk``: pieces per network call at most (a positive int; the default is cache-sized).
     """
 
     vertex_check: bool = True
     cull: bool = True
     polish: bool = False
     cutoff: float | None = None
-    chunk: int = 65536
+    chunk: int = NETWORK_CHUNK
 
     def __post_init__(self):
+        object.__setattr__(self, "chunk", int_at_least(self.chunk, "chunk", minimum=1))
         if self.cutoff is not None and not self.vertex_check:
             raise InputError("solve_mesh: a cutoff needs vertex_check=True (the culls compare against vertex values)")
 
@@ -70,7 +72,7 @@ class Known:
     vertex_values: torch.Tensor | None = None
 
 
-def detect(detector: AmortizedDetector, shape, triangles, chunk: int = 65536, vertex_check: bool = False,
+def detect(detector: AmortizedDetector, shape, triangles, chunk: int = NETWORK_CHUNK, vertex_check: bool = False,
            polish: bool = True) -> torch.Tensor:
     """Amortized minimum of ``shape``'s SDF on each triangle: (M, 3, 3) source frame -> bary (M, 3).
 
