@@ -6,7 +6,7 @@ build) with ``zoo.collide`` from scratch at that pose, and prints per pair: the 
 minimum lies within the margin (the contacts any method must find), their depths and their widths
 (twice the area over the longest edge) and lengths. A profile of what a step costs, not a timing:
 
-    python -m benches.contact_faces --scene mug-rack --steps 80
+    python -m sdfzoo.benches.contact_faces --scene mug-rack --steps 80
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def _mm_percentiles(values: np.ndarray) -> dict:
 
 def simulated(name: str, steps: int):
     """Scenario ``name``'s simulation (its scene, control and default settings) after ``steps`` steps."""
-    from benches.sim_scenarios import advance, start
+    from sdfzoo.benches.sim_scenarios import advance, start
 
     scenario, sim, extra = start(name)
     for _ in range(steps):
@@ -78,13 +78,13 @@ def contact_faces(name: str, steps: int) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    from benches.sim_scenarios import SCENARIOS
+    from sdfzoo.benches.sim_scenarios import SCENARIOS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=sorted(SCENARIOS), required=True)
     parser.add_argument("--steps", type=int, default=80, help="steps simulated before counting (default 80)")
     args = parser.parse_args(argv)
-    from benches.sim_scenarios import require_meshes
+    from sdfzoo.benches.sim_scenarios import require_meshes
 
     require_meshes()
     torch.set_num_threads(1)

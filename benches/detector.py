@@ -97,8 +97,8 @@ QUICK = BenchConfig(n_per_shape=100, fw_iters=(1, 2, 5, 11, 20), refine_iters=(1
 def bench_triangles(shapes, config: BenchConfig, sampler=None) -> list[torch.Tensor]:
     """Per shape, ``n_per_shape`` fresh triangles (normalised frame) under the paper's four conditions."""
     if sampler is None:
-        from pipeline.triangle_sampling import sample_constrained_triangles as sampler
-    from pipeline.triangles import shape_seed
+        from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles as sampler
+    from sdfzoo.pipeline.triangles import shape_seed
 
     return [torch.as_tensor(sampler(s.normalised, config.n_per_shape, seed=shape_seed(config.seed, i), batch=16384)).float()
             for i, s in enumerate(shapes)]
@@ -240,7 +240,7 @@ def method_table(detector, config: BenchConfig) -> dict:
 def midpoint_quadratic(sdf, triangles: torch.Tensor) -> torch.Tensor:
     """The ceiling of the curvature head's model: the exact minimum of the quadratic that matches the SDF at
     the three vertices and the three edge midpoints (six value queries per triangle, no network)."""
-    from pipeline.train_detector import midpoint_curvatures
+    from sdfzoo.pipeline.train_detector import midpoint_curvatures
     from zoo.detector import quadratic_argmin
     from zoo.solvers import vertex_values
 
@@ -643,7 +643,7 @@ def bench_model(model_spec, out_dir="bench-results", unseen_meshes=(), config: B
 
 def unseen_test_shapes(model, category: str, data_dir=None, count: int = 3, iters: int = 500) -> list:
     """The first ``count`` meshes of ``category``'s test split, fitted with the decoder frozen (their own up axes)."""
-    from pipeline.categories import load_category, resolve_data_dir, verify_meshes
+    from sdfzoo.pipeline.categories import load_category, resolve_data_dir, verify_meshes
 
     cat = load_category(category)
     stems = cat.stems("test")[:count]
@@ -678,7 +678,7 @@ def main(argv=None) -> None:
     import dataclasses
 
     import zoo
-    from pipeline.train_detector import load_detector
+    from sdfzoo.pipeline.train_detector import load_detector
 
     config = QUICK if args.quick else BenchConfig()
     if args.n_per_shape:

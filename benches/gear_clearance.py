@@ -8,7 +8,7 @@ those points to the large gear: the exact distance to its mesh, and the NeuralSD
 without jamming needs an offset range where the clearance stays positive (the backlash); the exact column is
 the meshes' own, the NeuralSDF column what a simulation on the model sees.
 
-    python -m benches.gear_clearance --shift 0 --out out/gear-clearance.json
+    python -m sdfzoo.benches.gear_clearance --shift 0 --out out/gear-clearance.json
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benches.sim_scenarios import GEAR_CENTRES, GEAR_FILES, _mesh, count_teeth
+from sdfzoo.benches.sim_scenarios import GEAR_CENTRES, GEAR_FILES, _mesh, count_teeth
 from zoo.files import atomic_write_text
 
 

@@ -6,7 +6,7 @@ asked for it (its call site). Prints per site the calls, points and milliseconds
 collision time per step that the queries leave (bookkeeping: bounds, selection, the solvers' own
 arithmetic). The first ``--skip`` steps are not counted. One torch thread; the timers add a little.
 
-    python -m benches.query_sites --scene mug-rack --steps 100 --out out/query-sites-mug-rack.json
+    python -m sdfzoo.benches.query_sites --scene mug-rack --steps 100 --out out/query-sites-mug-rack.json
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benches.report import write_report
+from sdfzoo.benches.report import write_report
 
 _INSIDE = ("neural.py", "sdf.py", "query_sites.py")  # frames of the query itself, not its caller
 
@@ -73,7 +73,7 @@ def timed_queries():
 
 def profile(name: str, steps: int, skip: int) -> dict:
     """Scenario ``name`` for ``skip`` + ``steps`` steps, its queries by site over the last ``steps``."""
-    from benches.sim_scenarios import advance, start
+    from sdfzoo.benches.sim_scenarios import advance, start
 
     scenario, sim, extra = start(name)
     for _ in range(skip):
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip", type=int, default=10, help="steps run first, not counted")
     parser.add_argument("--out", default="out/query-sites.json")
     args = parser.parse_args(argv)
-    from benches.sim_scenarios import require_meshes
+    from sdfzoo.benches.sim_scenarios import require_meshes
 
     require_meshes()
     torch.set_num_threads(1)
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'kind':<10} {'calls':>5} {'points':>7} {'ms':>6}  site (per step)")
     for r in result["sites"]:
         print(f"{r['kind']:<10} {r['calls_per_step']:>5.1f} {r['points_per_step']:>7.0f} {r['ms_per_step']:>6.2f}  {r['site']}")
-    write_report(args.out, result, "benches.query_sites", argv)
+    write_report(args.out, result, "sdfzoo.benches.query_sites", argv)
 
 
 if __name__ == "__main__":

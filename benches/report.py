@@ -12,7 +12,7 @@ from zoo.files import atomic_write_text
 def write_report(path, report: dict, module: str, argv: list[str] | None = None) -> None:
     """Write ``report`` to ``path`` atomically, adding ``machine`` (:func:`benches.solvers.machine_info`) and ``command``:
     ``python -m <module>`` and its arguments, ``argv`` where a caller passed them, else the process's own."""
-    from benches.solvers import machine_info
+    from sdfzoo.benches.solvers import machine_info
 
     args = sys.argv[1:] if argv is None else argv
     full = {**report, "machine": machine_info(), "command": " ".join(["python", "-m", module, *args])}

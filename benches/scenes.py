@@ -175,7 +175,7 @@ def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_c
     grown by 5% of the shape's size; the spacing is the shape's longest side / ``spacing_cells``,
     coarsened if the region would need more than ``max_points`` samples. Cached by name.
     """
-    from pipeline.categories import load_category, resolve_data_dir
+    from sdfzoo.pipeline.categories import load_category, resolve_data_dir
     from zoo.meshes import ExactMeshSDF, load_mesh
 
     category = load_category(model)
@@ -485,7 +485,7 @@ def measure_method(bs, name, fw_iters, refine, tri, repeats, memory, scene_path,
 
 def peak_memory_in_child(scene_path: Path, method: str, fw_iters: int, refine: int, standin_dir: str) -> dict:
     """Peak RSS (MB) of a fresh process: after loading the scene, and after one collide with ``method``."""
-    cmd = [sys.executable, "-m", "benches.scenes", "--child", str(scene_path), method, str(fw_iters), str(refine), standin_dir]
+    cmd = [sys.executable, "-m", "sdfzoo.benches.scenes", "--child", str(scene_path), method, str(fw_iters), str(refine), standin_dir]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parent.parent)
     if done.returncode != 0:
@@ -658,4 +658,4 @@ if __name__ == "__main__":  # the memory probe's child process
     if len(sys.argv) == 7 and sys.argv[1] == "--child":
         _child(*sys.argv[2:])
     else:
-        raise SystemExit("usage: python -m benches.scenes --child SCENE METHOD FW_ITERS REFINE STANDIN_DIR")
+        raise SystemExit("usage: python -m sdfzoo.benches.scenes --child SCENE METHOD FW_ITERS REFINE STANDIN_DIR")

@@ -20,7 +20,7 @@ It also runs issue 25's three-way check on ``mug-hanging`` (the mug released 2 m
 hangs): the default against amortized from scratch and FW-10, per-step time ratios and how far apart
 the three trajectories end. Writes ``sim.json`` and ``sim.png`` (time per step against penetration).
 
-    python -m benches.sim_bench --out out/bench --seconds 0.2          # or: zoo bench --sim
+    python -m sdfzoo.benches.sim_bench --out out/bench --seconds 0.2          # or: zoo bench --sim
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def percentiles(values, qs) -> dict:
 def simulate(scenario: str, method: str, seconds: float) -> dict:
     """One (scenario, method) run in this process: the metrics (see the module docstring) and the end pose."""
     import zoo.sim
-    from benches.sim_scenarios import SCENARIOS
+    from sdfzoo.benches.sim_scenarios import SCENARIOS
 
     sim = zoo.sim.load_scene(ROOT / "scenes" / SCENES[scenario], **METHODS[method])
     sim.build()
@@ -121,7 +121,7 @@ def yardstick_penetration(sim, pairs: list[tuple[str, str]], poses: list[dict], 
 
 
 def reference(kind: str, scenario: str, seconds: float, dt: float = 0.002) -> dict:
-    from benches import sim_references
+    from sdfzoo.benches import sim_references
 
     run = {"mujoco-sdf-plugin": sim_references.mujoco_sdf_plugin, "coacd-native": sim_references.coacd_native}[kind]
     return run(scenario, seconds, dt)
@@ -129,7 +129,7 @@ def reference(kind: str, scenario: str, seconds: float, dt: float = 0.002) -> di
 
 def run_isolated(args: list[str], timeout: float) -> dict:
     """One run in its own process (its own peak memory, no state shared): the child's JSON plus ``peak_memory_mb``."""
-    command = [sys.executable, "-m", "benches.sim_bench", *args]
+    command = [sys.executable, "-m", "sdfzoo.benches.sim_bench", *args]
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout, env={**os.environ})
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"}
@@ -208,8 +208,8 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
                       progress=print, timeout: float = 1800, threads: int | None = None) -> Path:
     """Every (scenario, method) and reference, each in its own process; writes ``out_dir/sim.json`` and ``sim.png``.
     ``threads``: torch CPU threads of every run (None: torch's default, which ``OMP_NUM_THREADS`` sets)."""
-    from benches.sim_scenarios import require_meshes
-    from benches.solvers import machine_info
+    from sdfzoo.benches.sim_scenarios import require_meshes
+    from sdfzoo.benches.solvers import machine_info
 
     require_meshes()
     scenarios = list(scenarios or SCENES)
@@ -220,7 +220,7 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
     def write() -> None:  # after every run: a long bench stopped early keeps what it measured
         machine = {**machine_info(), **({"threads": threads} if threads else {})}  # the runs' threads, not this process's
         report = {"seconds": seconds, "machine": machine, "rows": rows, "check_mug_hanging": three_way_check(rows),
-                  "speed_bars": speed_bars(rows), "command": "python -m benches.sim_bench " + " ".join(sys.argv[1:])}
+                  "speed_bars": speed_bars(rows), "command": "python -m sdfzoo.benches.sim_bench " + " ".join(sys.argv[1:])}
         atomic_write_text(path, json.dumps(report, indent=1))
 
     for scenario in scenarios:

@@ -5,7 +5,7 @@ Cases: a sphere dropped exactly over a vertex of a finely triangulated plane, a 
 compares the resting penetration (within 25% of native), the normal force (within 1% of m g) and
 the sliding distance (within 10% of native).
 
-    python -m benches.sim_check --out out/sim-check.json
+    python -m sdfzoo.benches.sim_check --out out/sim-check.json
 """
 
 from __future__ import annotations

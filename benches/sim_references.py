@@ -13,7 +13,7 @@
 Each returns the metrics of :func:`step_metrics` plus the scenario's outcome (the same checks as
 benches/sim_scenarios.py where they apply). Needs $ZOO_DATA for coacd_native (the real meshes).
 
-    python -m benches.sim_references --method coacd-native --scenario bolt-nut --seconds 0.2
+    python -m sdfzoo.benches.sim_references --method coacd-native --scenario bolt-nut --seconds 0.2
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benches.sim_scenarios import (
+from sdfzoo.benches.sim_scenarios import (
     BOLT_FILE,
     GEAR_CENTRES,
     GEAR_FILES,
@@ -488,7 +488,7 @@ def source_mesh_file(sdf_spec: dict) -> Path:
     """The source mesh of a scene body's ``sdf = {model, shape}``: the category manifest's file for the
     shape, under $ZOO_DATA. The NeuralSDF is in that mesh's frame and units (Model.shape), so the mesh
     takes the body's place with no transform (checked: the SDF is ~0 on the mesh's surface)."""
-    from pipeline.categories import load_category
+    from sdfzoo.pipeline.categories import load_category
 
     return Path(os.environ["ZOO_DATA"]) / load_category(sdf_spec["model"]).entry(sdf_spec["shape"]).file
 
@@ -624,7 +624,7 @@ def coacd_native(scenario: str, seconds: float, dt: float | None = None, params:
     :func:`step_metrics`'s keys, "geometry", "notes", "decomposition" and the scenario's outcome."""
     import mujoco
 
-    from benches.sim_scenarios import require_meshes
+    from sdfzoo.benches.sim_scenarios import require_meshes
 
     require_meshes()
     scene = _scene(scenario)

@@ -8,7 +8,7 @@
 
 Teeth and the thread's pitch are measured on the meshes, not typed in. Needs $ZOO_DATA (the real meshes).
 
-    python -m benches.sim_scenarios --scene gear-gear --out out/sim-scenarios
+    python -m sdfzoo.benches.sim_scenarios --scene gear-gear --out out/sim-scenarios
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 import zoo
-from pipeline.triangle_sampling import sample_constrained_triangles
+from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
 from zoo import solvers
 from zoo.files import atomic_path, atomic_write_text
 from zoo.progress import progress_bar

@@ -292,7 +292,7 @@ def _fit_extremes() -> tuple[dict, bool]:
     grow with the targets."""
     from dataclasses import replace
 
-    from pipeline.fit_sdf import make_optimizer, preset, stack_samples, train_step
+    from sdfzoo.pipeline.fit_sdf import make_optimizer, preset, stack_samples, train_step
     from zoo.neural import NeuralSDF, NeuralSDFConfig
 
     quick = preset("quick")
@@ -363,7 +363,7 @@ def _detector_extremes(sdf) -> tuple[dict, bool]:
     """A few steps of pipeline.train_detector.train (tiny detectors, two losses) on each extreme batch."""
     from dataclasses import replace
 
-    from pipeline.train_detector import TrainConfig, TrainingData, preset, train
+    from sdfzoo.pipeline.train_detector import TrainConfig, TrainingData, preset, train
 
     def tiny(config):
         return replace(config, steps=3, batch_size=8, validate_every=1000, validation_size=8, checkpoint_every=1000,

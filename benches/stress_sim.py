@@ -7,7 +7,7 @@ penetration (pushed out without an explosion); 10 s of resting contact (no energ
 over 1,000 simultaneous contacts. Every case also checks that the state stays finite and lists
 MuJoCo's warnings (``d.warning``) and zoo.sim's.
 
-    python -m benches.stress_sim --out out/stress-sim.json
+    python -m sdfzoo.benches.stress_sim --out out/stress-sim.json
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ def _run_solvers(opts: BenchOptions) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from benches.solvers import PNG_NAME, TABLE_HEADER, format_table, run_solver_benchmark
+    from sdfzoo.benches.solvers import PNG_NAME, TABLE_HEADER, format_table, run_solver_benchmark
 
     path = run_solver_benchmark(
         n_triangles=opts.triangles, out_dir=opts.out, seed=opts.seed, threads=opts.threads, progress=opts.progress
@@ -85,7 +85,7 @@ def _run_scenes(opts: BenchOptions) -> None:
 
     from rich.console import Console
 
-    from benches.scenes import TABLE_HEADER, format_table, run_scene_benchmark
+    from sdfzoo.benches.scenes import TABLE_HEADER, format_table, run_scene_benchmark
 
     console = Console(width=max(Console().width, 150))
     path = run_scene_benchmark(opts.scenes, out_dir=opts.out, threads=opts.threads,
@@ -118,7 +118,7 @@ def _run_detector(opts: BenchOptions) -> None:
 
     from rich.console import Console
 
-    from benches.detector import BenchConfig, bench_model, format_tables
+    from sdfzoo.benches.detector import BenchConfig, bench_model, format_tables
 
     config = BenchConfig(threads=opts.threads, n_per_shape=opts.n_per_shape)
     path = bench_model(opts.model, opts.out, config=config, max_shapes=opts.max_shapes, unseen_category=opts.unseen_category,
@@ -136,7 +136,7 @@ def _run_sim(opts: BenchOptions) -> None:
     from zoo.errors import require
 
     require("mujoco", "sim")
-    from benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
+    from sdfzoo.benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
 
     console = Console(width=max(Console().width, 150))
     path = run_sim_benchmark(opts.out, seconds=opts.sim_seconds, progress=console.print if opts.progress else (lambda *_: None),

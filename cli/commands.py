@@ -10,7 +10,7 @@ from .main import app
 @app.command()
 def demo(out: str = typer.Option("out/demo", help="Folder for the demo's JSON and PNG.")):
     """Run the bundled demo scene on the pretrained models shipped in the package."""
-    from benches.demo import run_demo
+    from sdfzoo.benches.demo import run_demo
     from zoo.progress import shown
 
     with shown():
@@ -26,7 +26,7 @@ def collide(
     """Detect contacts in a scene; print a table and write JSON and a PNG."""
     from rich.console import Console
 
-    from benches.demo import CONTACT_ROWS, contacts_table
+    from sdfzoo.benches.demo import CONTACT_ROWS, contacts_table
     from zoo.progress import shown
     from zoo.scenes import contacts_summary, load_scene, run_scene, write_outputs
 
@@ -67,13 +67,13 @@ def stress(
         from zoo.errors import require
 
         require("mujoco", "sim")  # one line naming the extra, not a failed case per scenario
-        from benches.stress_sim import run_sim_stress
+        from sdfzoo.benches.stress_sim import run_sim_stress
 
         out = "out/stress-sim.json" if out == "out/stress.json" else out
         with shown():
             report = run_sim_stress(out)
     else:
-        from benches.stress import run_stress
+        from sdfzoo.benches.stress import run_stress
 
         with shown():
             report = run_stress(out, model=model, shape=shape)

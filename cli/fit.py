@@ -30,7 +30,7 @@ def fit_category(
     """
     import torch
 
-    from pipeline.fit_category import fit_category as run_fit_category
+    from sdfzoo.pipeline.fit_category import fit_category as run_fit_category
 
     if threads:
         torch.set_num_threads(threads)
@@ -56,7 +56,7 @@ def fit_codes(
     progress: bool = typer.Option(True, "--progress/--no-progress"),
 ):
     """Fit an unseen mesh's code cloud with the model's decoder frozen; print its accuracy."""
-    from pipeline.fit_category import fit_codes as run_fit_codes
+    from sdfzoo.pipeline.fit_category import fit_codes as run_fit_codes
 
     summary = run_fit_codes(model, mesh, out, iters=iters, up=up, seed=seed, device=device, progress=progress)
     typer.echo(json.dumps(summary, indent=1))

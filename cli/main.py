@@ -56,5 +56,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(1)
 
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
+if __name__ == "__main__":  # pragma: no cover - `python -m sdfzoo.cli.main`: run the imported module's app,
+    from sdfzoo.cli.main import main as imported_main  # on which the command modules register (not this __main__'s)
+
+    imported_main()

@@ -64,7 +64,7 @@ def info(spec: str = typer.Argument(..., help="NAME or NAME@X.Y.Z")):
     """Show a model's model card and its manifest entry."""
     from rich.console import Console
 
-    from pipeline.package import dumps_toml
+    from sdfzoo.pipeline.package import dumps_toml
     from zoo.registry import info as model_info
 
     found = model_info(spec)
@@ -91,7 +91,7 @@ def package(
     force: bool = typer.Option(False, "--force", help="Replace an existing release of this version."),
 ):
     """Release a fit output as NAME@X.Y.Z: package folder, model card, SHA256SUMS, manifest entry."""
-    from pipeline.package import package_model
+    from sdfzoo.pipeline.package import package_model
 
     done = package_model(source, version, name=name, fit_dir=fit_dir, force=force, metrics_file=metrics, metrics_command=metrics_command)
     typer.echo(f"packaged {done.name}@{done.version} in {done.path}")
@@ -107,7 +107,7 @@ def push(
     private: bool = typer.Option(None, "--private/--public", help="Visibility when the repository is created."),
 ):
     """Upload a release to the Hugging Face Hub and tag it with its version."""
-    from pipeline.package import push_package
+    from sdfzoo.pipeline.package import push_package
 
     done = push_package(spec, repo, token=token, private=private)
     typer.echo(f"pushed {spec} to {done['repo']} (tag {done['tag']}); load with zoo.load(\"{done['spec']}\")")

@@ -14,9 +14,9 @@ from .main import app
 
 @app.command()
 def simulate(
-    scene: str = typer.Argument(..., help="A simulation scene (\\[\\[bodies]] and a \\[sim] table) or a collision scene (its SDF dropped on its mesh): "
+    scene: str = typer.Argument(..., help="A simulation scene ([[bodies]] and a [sim] table) or a collision scene (its SDF dropped on its mesh): "
                                 "a path or a bundled scene's name (sim-demo-mug-rack)."),
-    seconds: float = typer.Option(None, "--seconds", help="Simulated time (default: the scene's \\[sim] seconds)."),
+    seconds: float = typer.Option(None, "--seconds", help="Simulated time (default: the scene's [sim] seconds)."),
     dt: float = typer.Option(None, "--dt", help="Time step, s (default: the scene's)."),
     method: str = typer.Option(None, "--method", help="zoo.collide's narrow phase: fw, pgd, voxel-fw, amortized (default: the scene's)."),
     out: Path = typer.Option(Path("out/simulate"), "--out", help="Folder for <name>.h5, .json, .png and .gif."),

@@ -181,7 +181,7 @@ def evaluate_train(model, category: str, data_dir=None, stems: list[str] | None 
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m pipeline.evaluate_sdf MODEL CATEGORY --test S1,S2 [--train S3,S4] --out FILE``."""
+    """``python -m sdfzoo.pipeline.evaluate_sdf MODEL CATEGORY --test S1,S2 [--train S3,S4] --out FILE``."""
     import argparse
     import json
 

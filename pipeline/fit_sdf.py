@@ -334,10 +334,10 @@ def save_result(path: str | os.PathLike, result: FitResult, data: TrainingData, 
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``[torchrun --nproc_per_node N] python -m pipeline.fit_sdf SAMPLES.h5... --out FIT.pt``."""
+    """``[torchrun --nproc_per_node N] python -m sdfzoo.pipeline.fit_sdf SAMPLES.h5... --out FIT.pt``."""
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m pipeline.fit_sdf", description=main.__doc__)
+    parser = argparse.ArgumentParser(prog="python -m sdfzoo.pipeline.fit_sdf", description=main.__doc__)
     parser.add_argument("samples", nargs="+", help="per-shape samples files (pipeline.samples)")
     parser.add_argument("--out", required=True, help="where rank 0 writes the trained state (torch.save)")
     parser.add_argument("--preset", default="default", choices=sorted(PRESETS),

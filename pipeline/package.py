@@ -417,6 +417,7 @@ def package_model(
     folder first and renames it into place, then writes the manifest atomically.
     """
     registry.parse_version(version)
+    refuse_installed_package()  # first: from a wheel, nothing else can succeed
     fit = resolve_fit_dir(source, fit_dir)
     if (fit / CHECKSUMS).is_file():
         verify_directory(fit)  # never release a fit output that changed after it was written
@@ -424,7 +425,6 @@ def package_model(
     category = config.get("category") or (str(source) if not Path(source).is_dir() else fit.name)
     name = registry.check_model_name(name or config.get("name") or category)
 
-    refuse_installed_package()
     manifest = read_models_manifest(name)
     destination = registry.pretrained_dir() / f"{name}-{version}"
     if not force and (version in manifest["versions"] or destination.exists()):

@@ -44,9 +44,28 @@ ROOT = Path(__file__).resolve().parent.parent
 # --------------------------------------------------------------------------- code digests
 
 
+def canonical_module(name: str) -> str:
+    """A project module's name in digests: "sdfzoo.pipeline.samples" (as setup.py installs pipeline/) is "pipeline.samples"."""
+    return name.removeprefix("sdfzoo.")
+
+
+def _package_folder(package: str) -> Path:
+    """The folder of a project package as imported (a clone's top-level folder, or site-packages/sdfzoo/pipeline and zoo)."""
+    if package == "pipeline":
+        return Path(__file__).resolve().parent
+    import zoo
+
+    return Path(zoo.__file__).resolve().parent
+
+
 def module_file(name: str, root: Path | None = None) -> Path | None:
-    """The source file of project module ``name`` ("pipeline.samples") under ``root`` (default the project's), or None."""
-    base = (root or ROOT).joinpath(*name.split("."))
+    """The source file of project module ``name`` ("pipeline.samples") under ``root`` (default the imported packages), or None."""
+    parts = canonical_module(name).split(".")
+    if parts[0] not in PROJECT_PACKAGES:
+        return None
+    if root is None and all((ROOT / package).is_dir() for package in PROJECT_PACKAGES):
+        root = ROOT  # a clone: its top-level folders (an installed wheel has no zoo/ beside sdfzoo/pipeline/)
+    base = root.joinpath(*parts) if root is not None else _package_folder(parts[0]).joinpath(*parts[1:])
     for candidate in (base.with_suffix(".py"), base / "__init__.py"):
         if candidate.is_file():
             return candidate
@@ -70,13 +89,14 @@ def _imports(path: Path, name: str, stamp: tuple) -> frozenset:
             found.add(base)
             found.update(f"{base}.{alias.name}" for alias in node.names)  # `from . import x`: x may be a module
     parents = {".".join(m.split(".")[:i]) for m in found for i in range(1, m.count(".") + 1)}  # importing runs them
-    return frozenset(m for m in found | parents if m.split(".")[0] in PROJECT_PACKAGES)
+    found = {canonical_module(m) for m in found | parents}
+    return frozenset(m for m in found if m.split(".")[0] in PROJECT_PACKAGES)
 
 
 def code_closure(modules, root: Path | None = None) -> dict[str, Path]:
     """{module: source file} of ``modules`` and every project module they import, transitively."""
     out: dict[str, Path] = {}
-    todo = list(modules)
+    todo = [canonical_module(m) for m in modules]
     while todo:
         name = todo.pop()
         path = None if name in out else module_file(name, root)

@@ -122,7 +122,7 @@ def ablation_configs(base: TrainConfig) -> dict[str, TrainConfig]:
 def train_ablations(data: TrainingData, base: TrainConfig, out_dir, progress: bool = True, log=print,
                     device=None) -> dict[str, Path]:
     """Train every :func:`ablation_configs` variant of ``base`` on ``data`` into ``OUT/<variant>``
-    (each resumable on its own); -> {variant: directory}, for ``python -m benches.detector --ablations``."""
+    (each resumable on its own); -> {variant: directory}, for ``python -m sdfzoo.benches.detector --ablations``."""
     out = {}
     for name, config in ablation_configs(base).items():
         log(f"ablation {name}")

@@ -123,7 +123,7 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, dev
     if sampler is None:
         from functools import partial
 
-        from pipeline.triangle_sampling import sample_constrained_triangles
+        from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
 
         sampler = partial(sample_constrained_triangles, batch=config.sampler_batch, device=device)
     tri = torch.as_tensor(sampler(sdf, config.n_per_shape, seed=shape_seed(config.seed, index))).float()
@@ -285,7 +285,7 @@ def relabel_triangle_dataset(in_path, shapes, out_path, config: TriangleConfig =
     longer meet the distance conditions under the new fit (centroid distance in [0, 0.1],
     positive minimum) are dropped. Useful when a NeuralSDF is refitted: sampling is the costly part.
     """
-    from pipeline.triangle_sampling import CENTROID_SDF_RANGE
+    from sdfzoo.pipeline.triangle_sampling import CENTROID_SDF_RANGE
 
     h5py = require("h5py")
     old = read_triangle_dataset(in_path)

@@ -20,7 +20,7 @@ def zoo_home(tmp_path, monkeypatch):
 @pytest.fixture
 def released(zoo_home):
     """mugs 1.9.0 and 1.10.0 (lexically smaller, semantically newer) and bottles 1.0.0."""
-    from pipeline.package import package_model
+    from sdfzoo.pipeline.package import package_model
 
     mugs = make_fit_output(zoo_home / "fits" / "mugs", "mugs", MUG_SHAPES)
     bottles = make_fit_output(zoo_home / "fits" / "bottles", "bottles", BOTTLE_SHAPES, seed=1)

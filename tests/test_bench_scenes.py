@@ -13,8 +13,8 @@ import pytest
 import torch
 
 import zoo
-from benches import scenes as bench_scenes
-from benches.scenes import (
+from sdfzoo.benches import scenes as bench_scenes
+from sdfzoo.benches.scenes import (
     PAPER_SCENES,
     BenchScene,
     matched_iterations,
@@ -23,7 +23,7 @@ from benches.scenes import (
     scene_paths,
     voxel_region,
 )
-from pipeline.categories import load_category
+from sdfzoo.pipeline.categories import load_category
 from zoo.collision import DEFAULT_ITERS
 from zoo.registry import toml_parser
 from zoo.scenes import scene_from_dict
@@ -188,13 +188,13 @@ def test_peak_memory_comes_from_a_child_process(tmp_path):
 def test_a_bench_report_records_the_command_that_made_it(tmp_path, monkeypatch):
     """benches/report.py: the JSON holds the report, the machine and the command with its arguments: the ones a
     caller passed, else the process's own (a bench run from the shell passes none)."""
-    from benches.report import write_report
+    from sdfzoo.benches.report import write_report
 
-    write_report(tmp_path / "a.json", {"rows": [1, 2]}, "benches.example", ["--out", "a.json"])
+    write_report(tmp_path / "a.json", {"rows": [1, 2]}, "sdfzoo.benches.example", ["--out", "a.json"])
     report = json.loads((tmp_path / "a.json").read_text())
-    assert report["rows"] == [1, 2] and report["command"] == "python -m benches.example --out a.json"
+    assert report["rows"] == [1, 2] and report["command"] == "python -m sdfzoo.benches.example --out a.json"
     assert report["machine"]["threads"] == torch.get_num_threads()
     monkeypatch.setattr("sys.argv", ["example.py", "--steps", "3"])
-    write_report(tmp_path / "b.json", {}, "benches.example")
-    assert json.loads((tmp_path / "b.json").read_text())["command"] == "python -m benches.example --steps 3"
+    write_report(tmp_path / "b.json", {}, "sdfzoo.benches.example")
+    assert json.loads((tmp_path / "b.json").read_text())["command"] == "python -m sdfzoo.benches.example --steps 3"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]  # no temporary file left behind

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from real_meshes import DATA, needs_data
 
-from pipeline.categories import list_categories, load_category, resolve_data_dir, verify_meshes
+from sdfzoo.pipeline.categories import list_categories, load_category, resolve_data_dir, verify_meshes
 from zoo.errors import DataError, InputError
 
 SPLIT_COUNTS = {  # (train, test, scene), from ../shared/meshes/SOURCES.md

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.fit_sdf import PRESETS as FIT_PRESETS
-from pipeline.fit_sdf import FitConfig
-from pipeline.presets import Presets
-from pipeline.samples import SampleConfig
-from pipeline.train_detector import PRESETS as TRAIN_PRESETS
-from pipeline.train_detector import TrainConfig
+from sdfzoo.pipeline.fit_sdf import PRESETS as FIT_PRESETS
+from sdfzoo.pipeline.fit_sdf import FitConfig
+from sdfzoo.pipeline.presets import Presets
+from sdfzoo.pipeline.samples import SampleConfig
+from sdfzoo.pipeline.train_detector import PRESETS as TRAIN_PRESETS
+from sdfzoo.pipeline.train_detector import TrainConfig
 from zoo.config import DictConfig, from_dict, to_dict
 from zoo.errors import InputError
 from zoo.neural import NeuralSDFConfig

@@ -28,9 +28,9 @@ import pytest
 import torch
 
 import zoo
-from benches.scenes import CHECK_MARGIN_NORMALISED as MARGIN_NORMALISED
-from benches.scenes import CHECK_SHAPE as PREFERRED_STEM
-from benches.scenes import check_margin, cutting_mesh, reference_contacts
+from sdfzoo.benches.scenes import CHECK_MARGIN_NORMALISED as MARGIN_NORMALISED
+from sdfzoo.benches.scenes import CHECK_SHAPE as PREFERRED_STEM
+from sdfzoo.benches.scenes import check_margin, cutting_mesh, reference_contacts
 from zoo.errors import ZooError
 from zoo.sdf import SDFBase
 

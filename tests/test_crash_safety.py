@@ -56,7 +56,7 @@ TIMING_KEYS = re.compile(r"(^|_)(seconds|elapsed|us_per_point)$")  # fit_seconds
 
 
 def stage_names() -> list[str]:
-    from pipeline.fit_category import STAGES
+    from sdfzoo.pipeline.fit_category import STAGES
 
     return [name for name, _ in STAGES]
 
@@ -370,7 +370,7 @@ def test_sigkill_inside_stage_then_rerun_reproduces_the_outputs(stage, reference
 
 def _tiny_detector_data(seed: int):
     import zoo
-    from pipeline.train_detector import TrainingData
+    from sdfzoo.pipeline.train_detector import TrainingData
 
     g = torch.Generator().manual_seed(seed)
     tri = torch.randn(16, 3, 3, generator=g) * 0.05 + 0.35
@@ -385,7 +385,7 @@ def test_a_detector_checkpoint_of_other_training_data_is_not_resumed(tmp_path):
     refitted NeuralSDF's features, used to be resumed: the stage then returned the old weights."""
     from dataclasses import replace
 
-    from pipeline.train_detector import preset, train
+    from sdfzoo.pipeline.train_detector import preset, train
 
     base = preset("quick")
     config = replace(base, steps=6, batch_size=8, checkpoint_every=3, validate_every=100, validation_size=8,
@@ -403,8 +403,8 @@ def test_a_detector_checkpoint_of_other_training_data_is_not_resumed(tmp_path):
 def test_triangle_chunks_of_another_fit_are_not_reused(tmp_path):
     """Per-shape chunks a killed run leaves are reused only for the same fit (named in provenance)."""
     import zoo
-    from pipeline.triangle_sampling import sample_constrained_triangles
-    from pipeline.triangles import TriangleConfig, read_triangle_dataset, sample_triangle_dataset
+    from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
+    from sdfzoo.pipeline.triangles import TriangleConfig, read_triangle_dataset, sample_triangle_dataset
     from zoo.neural import interpolate_codes
 
     class Shape:
@@ -448,8 +448,8 @@ def test_a_torn_detector_checkpoint_warns_and_training_starts_afresh(tmp_path):
     checkpoint used to raise DataError here and be silently ignored there; now both warn and restart."""
     from dataclasses import replace
 
-    from pipeline.train_detector import preset, train
-    from pipeline.training import CheckpointWarning
+    from sdfzoo.pipeline.train_detector import preset, train
+    from sdfzoo.pipeline.training import CheckpointWarning
 
     base = preset("quick")
     config = replace(base, steps=6, batch_size=8, checkpoint_every=3, validate_every=100, validation_size=8,

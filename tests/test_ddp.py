@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.fit_sdf import FitConfig, fit_sdf, load_training_data, preset
-from pipeline.samples import ShapeSamples, write_samples
+from sdfzoo.pipeline.fit_sdf import FitConfig, fit_sdf, load_training_data, preset
+from sdfzoo.pipeline.samples import ShapeSamples, write_samples
 from zoo.meshes import Similarity
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,7 +42,7 @@ def torchrun() -> list[str] | None:
 def test_two_processes_agree_with_one(tmp_path):
     files = write_spheres(tmp_path)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    common = ["-m", "pipeline.fit_sdf", *files, "--preset", "quick", "--config", json.dumps(CONFIG), "--threads", "1",
+    common = ["-m", "sdfzoo.pipeline.fit_sdf", *files, "--preset", "quick", "--config", json.dumps(CONFIG), "--threads", "1",
               "--no-progress"]
     two = subprocess.run([*torchrun(), "--standalone", "--nproc_per_node", "2", *common, "--out", str(tmp_path / "two.pt")],
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import zoo
-from pipeline.train_detector import (
+from sdfzoo.pipeline.train_detector import (
     TrainConfig,
     TrainingData,
     detector_losses,
@@ -23,7 +23,7 @@ from pipeline.train_detector import (
     save_detector,
     train,
 )
-from pipeline.triangle_sampling import sample_constrained_triangles
+from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
 from zoo.amortized import detect, subdivision_barycentrics
 from zoo.detector import AmortizedDetector, quadratic_argmin, quadratic_minimum
 from zoo.errors import InputError
@@ -325,7 +325,7 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_training_resumes_from_its_checkpoint_on_the_cpu(torus_data, tmp_path, monkeypatch, device):
-    import pipeline.train_detector as td
+    import sdfzoo.pipeline.train_detector as td
 
     shape, tri, feat = torus_data
     data = TrainingData(tri[:512], feat[:512], torch.zeros(512, dtype=torch.long), [shape.normalised])
@@ -415,7 +415,7 @@ def test_penetrating_triangle_gets_a_point_inside(trained):
 def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
     import json
 
-    from benches.detector import BenchConfig, format_tables, run_detector_benchmark
+    from sdfzoo.benches.detector import BenchConfig, format_tables, run_detector_benchmark
 
     config = BenchConfig(n_per_shape=40, fw_iters=(1, 3, 50), refine_iters=(1,), voxel_resolutions=(16,), timing_batch=200,
                          repeats=1, max_timed_fw_iters=3, reference_resolution=8)
@@ -438,7 +438,7 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
     assert set(report["table_3"]) == {"seen", "unseen"} and {"full", "full+ls"} <= set(report["table_4"])
     assert "Table I" in format_tables(report)
     # what a release's manifest records is the report's own numbers, under the manifest's names
-    from benches.detector import release_metrics
+    from sdfzoo.benches.detector import release_metrics
 
     flat = release_metrics(report)
     assert flat["detector_seen_polished_optimality_mean"] == seen["amortized+ls"]["optimality_mean"]
@@ -458,7 +458,7 @@ def test_benchmark_writes_tables_and_a_plot(trained, tmp_path):
 
 def test_worst_share_and_bands_against_a_plain_loop():
     """The bench's account of where a mean comes from, against sorting and counting by hand."""
-    from benches.detector import by_minimum_band, worst_share
+    from sdfzoo.benches.detector import by_minimum_band, worst_share
 
     gen = torch.Generator().manual_seed(3)
     gaps = torch.rand(203, generator=gen) ** 4  # heavy-tailed, as optimality is
@@ -480,8 +480,8 @@ def test_zoo_bench_detector_runs_the_detector_section(monkeypatch, tmp_path):
     """`zoo bench --detector MODEL` hands its options to benches.detector.bench_model and prints its tables."""
     from typer.testing import CliRunner
 
-    import benches.detector as bd
-    from cli.main import app, register_commands
+    import sdfzoo.benches.detector as bd
+    from sdfzoo.cli.main import app, register_commands
 
     calls = {}
 
@@ -503,7 +503,7 @@ def test_zoo_bench_detector_runs_the_detector_section(monkeypatch, tmp_path):
 
 
 def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_triangle():
-    from benches.detector import moved_reference
+    from sdfzoo.benches.detector import moved_reference
     from zoo.geometry import edge_lengths
 
     g = torch.Generator().manual_seed(0)
@@ -525,7 +525,7 @@ def test_moved_reference_moves_off_vertex_minima_by_the_fraction_within_the_tria
 
 
 def test_interpolant_minimum_is_the_brute_force_minimum_where_the_sdf_is_such_a_polynomial():
-    from benches.detector import interpolant_minimum
+    from sdfzoo.benches.detector import interpolant_minimum
 
     a = torch.tensor([0.6, -0.3, 0.2], dtype=torch.float64)
 

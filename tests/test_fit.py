@@ -15,8 +15,8 @@ import pytest
 import torch
 from real_meshes import SKIP_REASON, zoo_data
 
-from pipeline.fit_sdf import FitConfig, fit_sdf, stack_samples, step_batch
-from pipeline.training import CheckpointWarning
+from sdfzoo.pipeline.fit_sdf import FitConfig, fit_sdf, stack_samples, step_batch
+from sdfzoo.pipeline.training import CheckpointWarning
 from zoo.neural import NeuralSDFConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -111,7 +111,7 @@ def test_fit_category_quick_survives_kill_9(tmp_path):
 
     third = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert third.returncode == 0, third.stderr
-    from pipeline.fit_category import STAGES
+    from sdfzoo.pipeline.fit_category import STAGES
 
     assert third.stderr.count("up to date, skipped") == len(STAGES), third.stderr
     assert ": done (" not in third.stderr, third.stderr  # every stage skipped, none ran again
@@ -125,7 +125,7 @@ def test_fit_category_quick_survives_kill_9(tmp_path):
 
 
 def test_steps_option_replaces_the_presets_training_length_and_is_recorded():
-    from pipeline.fit_category import PRESETS, fit_category
+    from sdfzoo.pipeline.fit_category import PRESETS, fit_category
     from zoo.errors import InputError
 
     default = PRESETS.lookup("default")

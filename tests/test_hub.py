@@ -117,7 +117,7 @@ class FakeHfApi:
 
 
 def test_push_uploads_the_package_and_tags_its_version(released):
-    from pipeline.package import push_package
+    from sdfzoo.pipeline.package import push_package
 
     api = FakeHfApi()
     done = push_package("mugs@1.9.0", "acme/mugs", api=api)
@@ -130,7 +130,7 @@ def test_push_uploads_the_package_and_tags_its_version(released):
 
 
 def test_push_refuses_a_corrupt_package(released):
-    from pipeline.package import push_package
+    from sdfzoo.pipeline.package import push_package
 
     flip_byte(released / "pretrained" / "mugs-1.10.0" / "sdf.safetensors")
     api = FakeHfApi()
@@ -143,7 +143,7 @@ def test_cli_push_passes_the_token_to_hfapi(released, monkeypatch):
     import huggingface_hub
     from typer.testing import CliRunner
 
-    from cli.main import app, register_commands
+    from sdfzoo.cli.main import app, register_commands
 
     made = []
     monkeypatch.setattr(huggingface_hub, "HfApi", lambda token=None: made.append(FakeHfApi(token)) or made[-1])

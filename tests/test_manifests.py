@@ -84,7 +84,7 @@ def test_validator_catches_missing_keys_and_bad_versions(released):
 def test_toml_writer_round_trips():
     tomllib = registry.toml_parser()
 
-    from pipeline.package import dumps_toml
+    from sdfzoo.pipeline.package import dumps_toml
 
     data = {
         "schema_version": 1,

@@ -161,7 +161,7 @@ def test_package_copies_weights_not_caches_and_writes_a_card(released):
 
 
 def test_package_refuses_an_existing_version_unless_forced(released):
-    from pipeline.package import package_model
+    from sdfzoo.pipeline.package import package_model
 
     fit = released / "fits" / "mugs"
     with pytest.raises(InputError, match="already exists"):
@@ -173,7 +173,7 @@ def test_package_refuses_an_existing_version_unless_forced(released):
 
 
 def test_package_refuses_a_corrupt_fit_output(zoo_home):
-    from pipeline.package import package_model
+    from sdfzoo.pipeline.package import package_model
 
     fit = make_fit_output(zoo_home / "fits" / "mugs", "mugs", MUG_SHAPES)
     flip_byte(fit / "sdf.safetensors")
@@ -186,7 +186,7 @@ def test_package_refuses_a_corrupt_fit_output(zoo_home):
 def test_package_from_an_installed_wheel_refuses_to_write_into_it(zoo_home, monkeypatch):
     """Installed (not a clone), the registry's default folders are the package's own: zoo package names the
     variables that point it at folders of the user's, and writes nothing."""
-    from pipeline.package import package_model
+    from sdfzoo.pipeline.package import package_model
     from zoo import resources
 
     fit = make_fit_output(zoo_home / "fits" / "mugs", "mugs", MUG_SHAPES)
@@ -201,7 +201,7 @@ def test_package_from_an_installed_wheel_refuses_to_write_into_it(zoo_home, monk
 
 
 def test_license_follows_the_training_meshes():
-    from pipeline.package import license_for
+    from sdfzoo.pipeline.package import license_for
 
     assert license_for(["hoi4d_mug_0001", "edf_mug1"])[0].startswith("non-commercial research only")
     assert license_for(["shapenet_mug_128ecbc1"])[0].startswith("non-commercial research only")
@@ -216,7 +216,7 @@ def test_license_follows_the_training_meshes():
 def _cli():
     from typer.testing import CliRunner
 
-    from cli.main import app, register_commands
+    from sdfzoo.cli.main import app, register_commands
 
     register_commands()
     return CliRunner(), app
@@ -236,7 +236,7 @@ def test_cli_list_and_info(released):
 
 
 def test_list_metrics_cell_keeps_headlines_in_order():
-    from cli.models import _metrics_summary
+    from sdfzoo.cli.models import _metrics_summary
 
     metrics = {"fit_seconds": 96.1, "detector_seen_polished_optimality_mean": 2.4e-4,
                "train": {"sign_agreement": 0.9987, "near_p90": 0.005, "near_p50": 0.00136}}

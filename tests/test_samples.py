@@ -11,8 +11,8 @@ import pytest
 import trimesh
 from real_meshes import DATA, needs_data
 
-from pipeline.normalise import read_normalised
-from pipeline.samples import (
+from sdfzoo.pipeline.normalise import read_normalised
+from sdfzoo.pipeline.samples import (
     SCHEMA_VERSION,
     SampleConfig,
     ShapeSamples,
@@ -104,7 +104,7 @@ def test_prepare_mesh_skips_when_up_to_date_and_reruns_on_change(box_file, tmp_p
 def test_an_edit_of_the_samples_code_reruns_samples_but_not_normalise(box_file, tmp_path, monkeypatch):
     """Stage locks record a digest of the code the stage runs: editing pipeline/samples.py (simulated by
     changing its recorded digest) reruns the samples stage; the normalise stage, which does not import it, skips."""
-    import pipeline.stages as stages
+    import sdfzoo.pipeline.stages as stages
 
     work = tmp_path / "work"
     path = prepare_mesh(box_file, work, SMALL)

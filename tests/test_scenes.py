@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import zoo
-from benches.stress import CASES, run_stress
+from sdfzoo.benches.stress import CASES, run_stress
 from zoo import parts
 from zoo.errors import DataError, InputError
 from zoo.scenes import load_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
@@ -99,7 +99,7 @@ def test_stress_malformed_inputs_all_raise_typed_errors(tmp_path):
 
 
 def test_stress_report_is_written(tmp_path, monkeypatch):
-    import benches.stress as stress
+    import sdfzoo.benches.stress as stress
 
     monkeypatch.setattr(stress, "CASES", [c for c in stress.CASES if c[0] in ("zero gradient (medial axis)", "float32 against float64")])
     report = run_stress(tmp_path / "s.json")
@@ -108,7 +108,7 @@ def test_stress_report_is_written(tmp_path, monkeypatch):
 
 
 def test_demo_error_against_run_time_on_the_bundled_model():
-    from benches.demo import demo_scene, error_vs_runtime
+    from sdfzoo.benches.demo import demo_scene, error_vs_runtime
 
     scene, _ = demo_scene()  # the bundled mugs model on a procedural rack: no ../shared needed
     rows = {r["method"]: r for r in error_vs_runtime(scene, iters=(1, 10), repeats=1)}
@@ -137,7 +137,7 @@ def test_the_bundled_demo_scene_loads_by_name_without_zoo_data_and_collides(tmp_
 
 
 def test_zoo_collide_prints_the_contact_table_and_writes_json_and_png(tmp_path, capsys):
-    from cli.main import main
+    from sdfzoo.cli.main import main
 
     main(["collide", "demo-mug-rack", "--out", str(tmp_path)])
     out = capsys.readouterr().out
@@ -151,7 +151,7 @@ def test_zoo_collide_prints_the_contact_table_and_writes_json_and_png(tmp_path, 
 
 @pytest.mark.slow
 def test_the_demo_scene_file_holds_the_pose_hanging_pose_computes():
-    from benches.demo import mug_rack_scene
+    from sdfzoo.benches.demo import mug_rack_scene
 
     computed, bundled = mug_rack_scene(zoo.load("mugs")), load_scene("demo-mug-rack")
     np.testing.assert_allclose(bundled.sdf_pose, computed.sdf_pose, rtol=0, atol=1e-12)

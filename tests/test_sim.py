@@ -14,7 +14,7 @@ mujoco = pytest.importorskip("mujoco")
 
 import zoo  # noqa: E402
 import zoo.sim  # noqa: E402
-from benches import sim_check, stress_sim  # noqa: E402
+from sdfzoo.benches import sim_check, stress_sim  # noqa: E402
 from zoo.errors import InputError  # noqa: E402
 from zoo.sim.contacts import closing_in_time, face_normals, reduce_contacts, refine_near, refine_to_size  # noqa: E402
 
@@ -239,8 +239,8 @@ def test_log_records_every_step():
 def test_zoo_simulate_writes_trajectory_stats_and_plot(tmp_path):
     from typer.testing import CliRunner
 
-    from cli import sim as _  # noqa: F401  (registers the command until cli.main does)
-    from cli.main import app, register_commands
+    from sdfzoo.cli import sim as _  # noqa: F401  (registers the command until cli.main does)
+    from sdfzoo.cli.main import app, register_commands
 
     register_commands()
     result = CliRunner().invoke(app, ["simulate", str(ROOT / "scenes" / "ring-rack.toml"), "--seconds", "0.02", "--dt", "0.002",

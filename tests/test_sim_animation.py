@@ -78,8 +78,8 @@ def test_frames_are_spread_over_the_run_and_capped():
 def test_zoo_simulate_writes_the_gif_unless_told_not_to(tmp_path, flag, gif):
     from typer.testing import CliRunner
 
-    from cli import sim as _  # noqa: F401  (registers the command)
-    from cli.main import app, register_commands
+    from sdfzoo.cli import sim as _  # noqa: F401  (registers the command)
+    from sdfzoo.cli.main import app, register_commands
 
     register_commands()
     result = CliRunner().invoke(app, ["simulate", str(ROOT / "scenes" / "ring-rack.toml"), "--seconds", "0.006", "--dt", "0.002",

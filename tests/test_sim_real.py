@@ -69,7 +69,7 @@ def test_sim_bench_runs_each_method_in_its_own_process_with_the_threads_asked(tm
 
     import torch
 
-    from benches.sim_bench import run_sim_benchmark
+    from sdfzoo.benches.sim_bench import run_sim_benchmark
 
     monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
     before = torch.get_num_threads()

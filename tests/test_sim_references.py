@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from benches import sim_references as refs  # noqa: E402
+from sdfzoo.benches import sim_references as refs  # noqa: E402
 
 
 def _plugin_missing() -> bool:

@@ -27,7 +27,7 @@ def meshes(monkeypatch):
 
 @needs_meshes
 def test_teeth_counted_on_the_industreal_gears(meshes):
-    from benches.sim_scenarios import _mesh, count_teeth
+    from sdfzoo.benches.sim_scenarios import _mesh, count_teeth
 
     centres = {"large": (-0.0302, 0.0), "medium": (0.02025, 0.0), "small": (0.05075, 0.0)}  # axes along z
     teeth = {name: count_teeth(np.asarray(_mesh(f"gear/industreal_gear_{name}.obj").vertices), c) for name, c in centres.items()}
@@ -37,7 +37,7 @@ def test_teeth_counted_on_the_industreal_gears(meshes):
 @pytest.mark.slow  # exact distances of 3 x 3 x 40,000 points to the large gear's mesh: 15-50 s
 @needs_meshes
 def test_gear_meshes_turn_in_mesh_with_backlash_at_their_assembly_pose(meshes):
-    from benches.gear_clearance import clearance
+    from sdfzoo.benches.gear_clearance import clearance
 
     rows = clearance(offsets_deg=[-1.0, 0.0, 1.0], phases=3, samples=40_000)
     exact = {r["offset_deg"]: r["exact_m"] for r in rows}
@@ -49,14 +49,14 @@ def test_gear_meshes_turn_in_mesh_with_backlash_at_their_assembly_pose(meshes):
 
 @needs_meshes
 def test_m16_thread_is_right_handed_with_a_2_mm_pitch(meshes):
-    from benches.sim_scenarios import BOLT_FILE, _mesh, thread_pitch
+    from sdfzoo.benches.sim_scenarios import BOLT_FILE, _mesh, thread_pitch
 
     pitch, hand = thread_pitch(np.asarray(_mesh(BOLT_FILE).vertices))
     assert hand == "right" and pitch == pytest.approx(0.002, abs=2.5e-5)  # ISO M16 coarse
 
 
 def test_count_teeth_and_thread_pitch_on_synthetic_geometry():
-    from benches.sim_scenarios import count_teeth, thread_pitch
+    from sdfzoo.benches.sim_scenarios import count_teeth, thread_pitch
 
     angle = np.linspace(-np.pi, np.pi, 20000, endpoint=False)
     radius = 0.02 + 0.001 * np.clip(2 * np.cos(17 * angle), -1, 1)  # flat tips and roots, 17 teeth
@@ -71,7 +71,7 @@ def test_count_teeth_and_thread_pitch_on_synthetic_geometry():
 def test_screw_asymmetry_is_zero_only_for_the_threads_own_screw():
     """benches/screw_symmetry.py against a field known in closed form: r - R - A cos(2 pi z / p - phi) is unchanged by
     a right-hand screw of pitch p, and changed by a pure turn and by the left-hand screw."""
-    from benches.screw_symmetry import advance_per_rad, asymmetry
+    from sdfzoo.benches.screw_symmetry import advance_per_rad, asymmetry
 
     pitch, amplitude = 0.002, 2e-4
 
@@ -95,7 +95,7 @@ def test_screw_asymmetry_is_zero_only_for_the_threads_own_screw():
 
 
 def test_gripper_motion_closes_then_lifts_then_carries():
-    from benches.sim_scenarios import CARRY, LIFT, PHASES, _finger_offset
+    from sdfzoo.benches.sim_scenarios import CARRY, LIFT, PHASES, _finger_offset
 
     close, offset, velocity = _finger_offset(0.02)
     assert close == pytest.approx(0.5) and np.allclose(offset, 0) and np.allclose(velocity, 0)
@@ -128,7 +128,7 @@ def test_scene_builds_with_its_bodies_and_joints(meshes, scene):
 @pytest.mark.slow  # 80 steps of the NeuralSDF bottle in the holder: 20-110 s on 2 shared cores
 @needs_meshes
 def test_bottle_lowered_into_the_holder_rests_upright(meshes):
-    from benches.sim_scenarios import run
+    from sdfzoo.benches.sim_scenarios import run
 
     result = run("bottle-holder", seconds=0.16)  # lands at 0.075 s; the scene's 0.3 s rests at 0.25 degree
     check = result["check"]
@@ -142,7 +142,7 @@ def test_gripper_lifts_and_carries_the_mug(meshes):
     """The Panda fingers close on the NeuralSDF mug, lift it 1 cm and carry it 1 cm: it rises and moves with
     them, slipping less than 2 mm (MuJoCo's grasping settings, elliptic and impratio 10; with the defaults it
     slipped 2.05 mm)."""
-    from benches.sim_scenarios import run
+    from sdfzoo.benches.sim_scenarios import run
 
     result = run("gripper-mug")
     check = result["check"]
@@ -156,7 +156,7 @@ def test_gripper_lifts_and_carries_the_mug(meshes):
 def test_nut_turned_on_the_bolt_advances_one_pitch_per_turn(meshes):
     """The nut, driven by a torque about the bolt's axis, turns and rides the thread: 2 mm (the pitch measured on
     the mesh) per turn within 5%, with the thread's hand (bolts@1.2.0; with a threadless NeuralSDF it slid down)."""
-    from benches.sim_scenarios import run
+    from sdfzoo.benches.sim_scenarios import run
 
     result = run("bolt-nut")
     check = result["check"]
@@ -171,7 +171,7 @@ def test_driven_gear_turns_the_other_at_the_teeth_ratio(meshes):
     """The large gear (gears@1.3.0's NeuralSDF) driven at 4 rad/s turns the medium gear's mesh 60/40 times as fast,
     within 5%, with the servo holding its speed (gears@1.2.0's teeth, too fat for the backlash, jammed; so did
     separated contacts given to MuJoCo's solver, which braked the driven gear's back flank at a distance)."""
-    from benches.sim_scenarios import run
+    from sdfzoo.benches.sim_scenarios import run
 
     result = run("gear-gear")
     check = result["check"]
@@ -183,14 +183,14 @@ def test_driven_gear_turns_the_other_at_the_teeth_ratio(meshes):
 def test_gripper_motion_lifts_a_box_on_mujocos_own_contacts():
     """The prescribed fingers and their gravity compensation carry a box on MuJoCo's native contacts: the
     control scheme holds, so the NeuralSDF mug's slip (docs/sim-scenarios.md) is the contacts'."""
-    from benches.sim_scenarios import native_grip
+    from sdfzoo.benches.sim_scenarios import native_grip
 
     result = native_grip()
     assert result["mug_rise_mm"] > 8.0 and result["mug_shift_mm"] > 9.5, result
 
 
 def test_face_shapes_of_a_sliver_and_a_right_triangle():
-    from benches.contact_faces import face_shapes
+    from sdfzoo.benches.contact_faces import face_shapes
 
     triangles = np.array([[[0, 0, 0], [3, 0, 0], [0, 4, 0]], [[0, 0, 0], [20, 0, 0], [10, 0.1, 0]]], dtype=np.float64)
     widths, longest = face_shapes(triangles)
@@ -201,7 +201,7 @@ def test_face_shapes_of_a_sliver_and_a_right_triangle():
 def test_faces_counted_within_the_margin_are_those_a_brute_force_search_finds():
     """benches/contact_faces.py's count of the faces a step must answer, on the bottle resting in the holder (bundled
     data), against the minimum of the bottle's SDF over a barycentric grid of every face of the holder's mesh."""
-    from benches.contact_faces import faces_within_margin, simulated
+    from sdfzoo.benches.contact_faces import faces_within_margin, simulated
     from zoo.geometry import barycentric_grid
 
     sim = simulated("bottle-holder", 45)  # landed at step 38
@@ -228,7 +228,7 @@ def test_faces_counted_within_the_margin_are_those_a_brute_force_search_finds():
 def test_the_timeline_windows_add_up_to_the_run():
     """benches/sim_timeline.py on the bottle landing in the holder (bundled data): the windows cover every step once,
     their collider counters add up to the colliders' totals and their medians are the log's."""
-    from benches.sim_timeline import COUNTERS, timeline
+    from sdfzoo.benches.sim_timeline import COUNTERS, timeline
 
     result = timeline("bottle-holder", seconds=0.05, window=10)  # 25 steps of the fall: two full windows and one of 5
     windows = result["windows"]
@@ -243,7 +243,7 @@ def test_the_timeline_windows_add_up_to_the_run():
 def test_query_sites_counts_each_query_with_the_function_that_asked():
     """benches/query_sites.py: the queries made inside ``timed_queries`` are counted by kind and caller, points
     included, and the NeuralSDF's own methods are restored afterwards."""
-    from benches.query_sites import timed_queries
+    from sdfzoo.benches.query_sites import timed_queries
     from zoo.neural import NeuralShape
 
     shape = zoo.load("mugs").shape("hoi4d_mug_0001")

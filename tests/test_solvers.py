@@ -407,7 +407,7 @@ def test_projected_gradient_improves_on_its_start(sphere, sphere_case):
 
 @pytest.mark.parametrize("sdf", [zoo.Box(), zoo.Torus()], ids=["box", "torus"])
 def test_frank_wolfe_500_agrees_with_reference(sdf):
-    from pipeline.triangle_sampling import sample_constrained_triangles
+    from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
 
     tri = sample_constrained_triangles(sdf, 150, seed=5, batch=2048).double()
     ref = values_at(sdf, tri, solvers.reference(sdf, tri))
@@ -589,7 +589,7 @@ def test_an_sdf_returning_wrong_shapes_is_reported(sphere):
 
 
 def test_sampled_triangles_meet_the_paper_conditions():
-    from pipeline.triangle_sampling import sample_constrained_triangles
+    from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
 
     torus = zoo.Torus()
     tri = sample_constrained_triangles(torus, 200, seed=3, batch=1024).double()
@@ -607,7 +607,7 @@ def test_sampled_triangles_meet_the_paper_conditions():
 
 
 def test_solver_benchmark_writes_its_json(tmp_path):
-    from benches.solvers import run_solver_benchmark
+    from sdfzoo.benches.solvers import run_solver_benchmark
 
     path = run_solver_benchmark(
         n_triangles=300, out_dir=tmp_path, fw_iters=(1, 5, 20), repeats=3, batch=150, progress=False,
@@ -617,7 +617,7 @@ def test_solver_benchmark_writes_its_json(tmp_path):
     assert {"machine", "config", "reference", "solvers"} <= set(report)
     assert {"torch", "threads", "cpu"} <= set(report["machine"])
     # the bench keeps freed memory in the process (steady timings), once, and says so
-    from benches.solvers import STEADY_ALLOCATOR, steady_allocator
+    from sdfzoo.benches.solvers import STEADY_ALLOCATOR, steady_allocator
 
     assert report["machine"]["allocator"] == steady_allocator() != "unchanged"
     if platform.libc_ver()[0] == "glibc":

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-import pipeline.stages as stages
-from pipeline.stages import (
+import sdfzoo.pipeline.stages as stages
+from sdfzoo.pipeline.stages import (
     Stage,
     canonical_json,
     code_closure,

@@ -8,7 +8,7 @@ import json
 import pytest
 
 import zoo
-from benches.stress import CASES, MODEL_CASES, run_case, run_stress, stress_context
+from sdfzoo.benches.stress import CASES, MODEL_CASES, run_case, run_stress, stress_context
 from zoo.errors import DataError, ZooError
 
 STRESS_MODEL = "mugs"  # shipped in the package: the model cases need no $ZOO_DATA
@@ -40,7 +40,7 @@ def test_stress_case(name, stress_contexts):
 
 
 def test_stress_reports_extreme_training_batches_ok(tmp_path, monkeypatch):
-    import benches.stress as stress
+    import sdfzoo.benches.stress as stress
 
     monkeypatch.setattr(stress, "CASES", [c for c in CASES if c[0] == "extreme training batches"])
     report = run_stress(tmp_path / "s.json")
@@ -90,7 +90,7 @@ def test_fit_codes_refuses_a_malformed_mesh_with_a_data_error(name, model, tmp_p
 
 @pytest.mark.parametrize("name", ["nan-vertex.obj", "empty.obj", "garbage.ply", "missing.obj"])
 def test_zoo_fit_codes_cli_prints_one_error_line(name, tmp_path, capsys):
-    from cli.main import main
+    from sdfzoo.cli.main import main
 
     path = tmp_path / name
     if name in BAD_MESHES:
@@ -105,7 +105,7 @@ def test_zoo_fit_codes_cli_prints_one_error_line(name, tmp_path, capsys):
 
 def _zoo(args, capsys):
     """`zoo ARGS` in this process: (exit code, stdout, stderr)."""
-    from cli.main import main
+    from sdfzoo.cli.main import main
 
     capsys.readouterr()
     try:
@@ -135,7 +135,7 @@ def test_zoo_help_keeps_its_brackets(capsys):
 
 
 def test_a_failed_stress_case_says_why_on_the_console(monkeypatch, tmp_path, capsys):
-    import benches.stress as stress
+    import sdfzoo.benches.stress as stress
 
     def broken(ctx):
         raise RuntimeError("the reason it failed")

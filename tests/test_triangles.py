@@ -6,8 +6,8 @@ import pytest
 import torch
 
 import zoo
-from pipeline.triangle_sampling import meets_conditions, sample_constrained_triangles
-from pipeline.triangles import (
+from sdfzoo.pipeline.triangle_sampling import meets_conditions, sample_constrained_triangles
+from sdfzoo.pipeline.triangles import (
     ARRAYS,
     SCHEMA_VERSION,
     TriangleConfig,
@@ -119,7 +119,7 @@ def test_errors_say_what_to_do(tmp_path):
 
 
 def test_relabelling_for_the_same_fit_reproduces_the_labels(dataset, tmp_path):
-    from pipeline.triangles import relabel_triangle_dataset
+    from sdfzoo.pipeline.triangles import relabel_triangle_dataset
 
     out = relabel_triangle_dataset(dataset, shapes(), tmp_path / "re.h5", CONFIG, progress=False)
     a, b = read_triangle_dataset(dataset), read_triangle_dataset(out)

@@ -117,7 +117,7 @@ def test_a_gpu_index_past_the_last_and_a_bad_name_are_typed(monkeypatch):
 def test_zoo_fit_category_on_a_missing_gpu_prints_one_line_and_exits_2(monkeypatch, tmp_path):
     from typer.testing import CliRunner
 
-    from cli.main import app, register_commands
+    from sdfzoo.cli.main import app, register_commands
 
     monkeypatch.setattr(torch.version, "cuda", None)
     monkeypatch.setattr(torch.version, "hip", None, raising=False)
