@@ -49,28 +49,30 @@ def faces_within_margin(sim, sdf_name: str, mesh_name: str):
     the SDF at every step instead (no fixed mesh)."""
     import zoo
 
-    pair = sim._pair_meshes[(sdf_name, mesh_name)]
-    if pair is None:
+    pair = sim.world.pair(sdf_name, mesh_name)
+    if pair.refined is None:
         return None
-    mesh = (torch.as_tensor(pair.vertices, dtype=torch.float32), torch.as_tensor(pair.faces))
+    mesh = (torch.as_tensor(pair.refined.vertices, dtype=torch.float32), torch.as_tensor(pair.refined.faces))
     return zoo.collide(sim.bodies[sdf_name].sdf, mesh, sdf_pose=torch.from_numpy(sim.pose(sdf_name)),
-                       mesh_pose=torch.from_numpy(sim.pose(mesh_name)), margin=sim.margin, method="amortized")
+                       mesh_pose=torch.from_numpy(pair.surface_pose(sim.data)), margin=sim.margin, method="amortized")
 
 
 def contact_faces(name: str, steps: int) -> list[dict]:
     """Per mesh pair of scenario ``name`` after ``steps`` steps: the faces within the margin (see the module docstring)."""
     sim = simulated(name, steps)
     rows = []
-    for (sdf_name, mesh_name), pair in sim._pair_meshes.items():
+    for pair in sim.world.pairs:
+        sdf_name, mesh_name = pair.sdf_body.name, sim.model.body(pair.body).name
         contacts = faces_within_margin(sim, sdf_name, mesh_name)
         if contacts is None:
             continue
         faces = np.asarray(contacts.triangles)
-        widths, lengths = face_shapes(pair.vertices[pair.faces[faces]])
+        refined = pair.refined
+        widths, lengths = face_shapes(refined.vertices[refined.faces[faces]])
         rows.append({
             "pair": [sdf_name, mesh_name], "step": steps, "margin_mm": 1e3 * sim.margin,
-            "mesh_faces": len(pair.faces), "own_faces": len(sim.bodies[mesh_name].mesh[1]),
-            "within_margin": len(faces), "own_faces_within_margin": len(np.unique(pair.origin[faces])),
+            "mesh_faces": len(refined.faces), "own_faces": len(pair.faces),
+            "within_margin": len(faces), "own_faces_within_margin": len(np.unique(refined.origin[faces])),
             "depth_mm": _mm_percentiles(np.asarray(contacts.depths)),
             "width_mm": _mm_percentiles(widths), "longest_edge_mm": _mm_percentiles(lengths),
         })

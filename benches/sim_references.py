@@ -46,7 +46,7 @@ from sdfzoo.benches.sim_scenarios import (
     thread_pitch,
 )
 from zoo.files import atomic_path, sha256_file
-from zoo.sim.model import mjcf_vector, quaternion
+from zoo.sim.model import quaternion
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
@@ -240,6 +240,11 @@ def _contact_defaults(friction: float, solref, solimp) -> str:
     sums the two geoms' margins into includemargin and its gap did not lower it (tried), so a margin
     would hold bodies apart by twice its value; the scene's margin is zoo.collide's detection distance."""
     return f'<geom condim="3" friction="{friction:.17g} 0.005 0.0001" solref="{mjcf_vector(solref)}" solimp="{mjcf_vector(solimp)}"/>'
+
+
+def mjcf_vector(values) -> str:
+    """An MJCF attribute value: the numbers of ``values`` (any shape), space-separated, to full precision."""
+    return " ".join(f"{float(v):.17g}" for v in np.asarray(values).reshape(-1))
 
 
 def nutbolt_mjcf(dt: float, friction: float, solref, solimp, mass: float, k: float = BOLT_SCALE,

@@ -4,7 +4,7 @@
 - bottle-holder: the bottle lowered into the holder rests upright: the tilt of its axis.
 - gear-gear: the large gear driven at constant speed turns the medium one: speed ratio vs teeth ratio.
 - bolt-nut: the nut driven by a torque about the bolt's axis advances one pitch per turn.
-- gripper-mug: two Panda fingers close on the mug, lift it and carry it: the mug moves with them.
+- gripper-mug: an MJCF gripper (scenes/gripper.xml) closes on the mug, lifts it and carries it: the mug moves with the hand.
 
 Teeth and the thread's pitch are measured on the meshes, not typed in. Needs $ZOO_DATA (the real meshes).
 
@@ -279,144 +279,32 @@ def _bolt_advance(sim, trace, extra) -> dict:
 
 # -- gripper-mug ---------------------------------------------------------------------------------
 
-FINGERS = ("left_finger", "right_finger")
-SQUEEZE = 0.0015  # each pad's target depth in the mug's surface, m
-OPEN = 0.003  # each pad's distance from the surface at the start, m
-PHASES = {"close": (0.0, 0.04), "hold": (0.04, 0.06), "lift": (0.06, 0.16), "carry": (0.16, 0.26)}
-LIFT = (0.0, 0.0, 0.01)  # lifted 1 cm, then carried 1 cm along x
-CARRY = (0.01, 0.0, 0.0)
-
-
-def _mug_surface_y(sim, x: float, z: float) -> tuple[float, float]:
-    """(y of the mug SDF's surface on the -y side, on the +y side) along the line (x, y, z) in the mug's
-    frame: its outermost zero crossings."""
-    import torch
-
-    ys = np.linspace(-0.08, 0.08, 3201)
-    points = torch.as_tensor(np.stack([np.full_like(ys, x), ys, np.full_like(ys, z)], axis=1), dtype=torch.float32)
-    with torch.no_grad():
-        inside = sim.bodies["mug"].sdf(points).numpy() < 0
-    return float(ys[np.argmax(inside)]), float(ys[len(ys) - 1 - np.argmax(inside[::-1])])
-
-
-def _gripper_prepare(sim) -> dict:
-    """The fingers' start poses (open) and their closed pad positions (SQUEEZE into the SDF's surface)."""
-    for f in FINGERS:  # gravity compensated: a finger's prescribed velocity is not eaten by g dt within the step
-        body = sim.bodies[f]
-        sim.data.xfrc_applied[body.body_id, 2] = sim.model.body_mass[body.body_id] * -sim.model.opt.gravity[2]
-    mug = sim.pose("mug")
-    starts = {f: sim.pose(f) for f in FINGERS}
-    pad = starts["left_finger"][:3, 3]
-    local = np.linalg.inv(mug) @ np.append(pad, 1.0)  # the pads' line in the mug's frame (fingers share x, z)
-    low, high = _mug_surface_y(sim, local[0], local[2])
-    ys = {"left_finger": (high + OPEN, high - SQUEEZE), "right_finger": (low - OPEN, low + SQUEEZE)}
-    for f, (y, _) in ys.items():
-        starts[f][1, 3] = mug[1, 3] + y
-    quats = {f: sim.data.qpos[sim.bodies[f].qpos_adr + 3:sim.bodies[f].qpos_adr + 7].copy() for f in FINGERS}
-    return {"starts": starts, "quats": quats, "pad_y": ys, "mug_start": mug[:3, 3].copy(), "surface_y": (low, high)}
-
-
-def _finger_offset(t: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """(closing fraction 0..1, base offset (3,), base velocity (3,)) of the prescribed motion at time t."""
-    def ramp(phase):
-        a, b = PHASES[phase]
-        return float(np.clip((t - a) / (b - a), 0.0, 1.0)), (1.0 / (b - a) if a <= t < b else 0.0)
-
-    close, _ = ramp("close")
-    lift, dlift = ramp("lift")
-    carry, dcarry = ramp("carry")
-    offset = lift * np.asarray(LIFT) + carry * np.asarray(CARRY)
-    velocity = dlift * np.asarray(LIFT) + dcarry * np.asarray(CARRY)
-    return close, offset, velocity
-
-
-def _gripper_control(sim, extra) -> None:
-    """Sets each finger's free joint to the prescribed pose and velocity of the coming step's end
-    (a kinematic finger: what the mug pushes on it within the step is overwritten at the next)."""
-    t = sim.time + sim.dt
-    close, offset, velocity = _finger_offset(t)
-    a, b = PHASES["close"]
-    for f in FINGERS:
-        body, start = sim.bodies[f], extra["starts"][f]
-        y_open, y_closed = extra["pad_y"][f]
-        pos = start[:3, 3] + offset
-        pos[1] = extra["mug_start"][1] + y_open + close * (y_closed - y_open)
-        vel = velocity.copy()
-        vel[1] = (y_closed - y_open) / (b - a) if a <= t < b else 0.0
-        q = sim.data.qpos[body.qpos_adr:body.qpos_adr + 7]
-        target = pos - vel * sim.dt  # the step moves it by vel * dt, to pos
-        q[:3] = target
-        q[3:] = extra["quats"][f]
-        sim.data.qvel[body.dof_adr:body.dof_adr + 6] = np.concatenate([vel, np.zeros(3)])
+PADS = ("left_pad", "right_pad")
+GRASPED_AT = 0.2  # s: the scene's waypoints have closed the fingers by then (scenes/sim-gripper-mug.toml)
 
 
 def _gripper_record(sim) -> dict:
-    return {"mug": sim.pose("mug")[:3, 3].tolist(), "finger": sim.pose("left_finger")[:3, 3].tolist(),
-            "tilt_deg": _tilt_deg(sim.pose("mug"))}
+    touching = {sim.model.geom(int(g)).name for g in sim.world.contact_geoms[:, 1]}
+    return {"mug": sim.pose("mug")[:3, 3].tolist(), "hand": sim.pose("hand")[:3, 3].tolist(),
+            "pads": sorted(touching & set(PADS)), "table": "table" in touching, "tilt_deg": _tilt_deg(sim.pose("mug"))}
 
 
 def _gripper_carried(sim, trace, extra) -> dict:
-    """Lifted and carried: the mug rose and moved along x with the fingers (within 2 mm of their 1 cm)."""
-    rise = trace[-1]["mug"][2] - extra["mug_start"][2]
-    shift = trace[-1]["mug"][0] - extra["mug_start"][0]
-    finger_rise = trace[-1]["finger"][2] - trace[0]["finger"][2]
-    finger_shift = trace[-1]["finger"][0] - trace[0]["finger"][0]
-    slip = math.hypot(rise - finger_rise, shift - finger_shift)
-    return {"mug_rise_mm": 1e3 * rise, "mug_shift_mm": 1e3 * shift, "finger_rise_mm": 1e3 * finger_rise,
-            "finger_shift_mm": 1e3 * finger_shift, "slip_mm": 1e3 * slip, "tilt_deg_end": trace[-1]["tilt_deg"],
-            "surface_y": extra["surface_y"], "passed": bool(rise > 0.008 and shift > 0.008 and slip < 0.002)}
-
-
-NATIVE_GRIP_XML = """<mujoco><option timestep="0.002" integrator="implicitfast" cone="{cone}" impratio="{impratio:.17g}"/><default><geom solref="0.01 1"/></default>
-<worldbody><geom type="plane" size="1 1 0.1"/>
-<body name="mug" pos="0 0 0.0405"><freejoint/><geom type="box" size="0.04 0.04 0.04" mass="0.2"/></body>
-<body name="left_finger" pos="0 0.048 0.05"><freejoint/><geom type="box" size="0.01 0.005 0.02" mass="1"/></body>
-<body name="right_finger" pos="0 -0.048 0.05"><freejoint/><geom type="box" size="0.01 0.005 0.02" mass="1"/></body>
-</worldbody></mujoco>"""
-
-
-def native_grip_xml(cone: str = "pyramidal", impratio: float = 1.0) -> str:
-    """The native grip's MJCF (:func:`native_grip`) with MuJoCo's friction cone and impratio."""
-    return NATIVE_GRIP_XML.format(cone=cone, impratio=float(impratio))
-
-
-def gripper_friction_settings() -> dict:
-    """The gripper scene's friction cone and impratio (as its simulation gets them)."""
-    from zoo.scenes import read_scene
-    from zoo.sim.scene import simulation_settings
-
-    settings = simulation_settings(read_scene(SCENES / SCENARIOS["gripper-mug"].scene)[0])
-    return {"cone": settings["cone"], "impratio": float(settings["impratio"])}
-
-
-def native_grip(cone: str = "pyramidal", impratio: float = 1.0) -> dict:
-    """The gripper's prescribed motion on MuJoCo's own contacts: an 8 cm, 0.2 kg box between two box
-    fingers closing 1.5 mm into it (same phases, gravity compensation and friction 1), no sdfzoo.
-    Tells the contact pipeline's slip from the control scheme's."""
-    import mujoco
-
-    model = mujoco.MjModel.from_xml_string(native_grip_xml(cone, impratio))
-    data = mujoco.MjData(model)
-    joints = {f: (model.jnt_qposadr[model.body(f).jntadr[0]], model.jnt_dofadr[model.body(f).jntadr[0]]) for f in FINGERS}
-    pad_y = {"left_finger": (0.048, 0.045 - SQUEEZE), "right_finger": (-0.048, -0.045 + SQUEEZE)}  # pad centres
-    for f in FINGERS:
-        data.xfrc_applied[model.body(f).id, 2] = model.body_mass[model.body(f).id] * -model.opt.gravity[2]
-    start = float(data.qpos[2])
-    a, b = PHASES["close"]
-    for _ in range(int(round(PHASES["carry"][1] / model.opt.timestep))):
-        t = data.time + model.opt.timestep
-        close, offset, velocity = _finger_offset(t)
-        for f, (qadr, dadr) in joints.items():
-            y_open, y_closed = pad_y[f]
-            vel = velocity.copy()
-            vel[1] = (y_closed - y_open) / (b - a) if a <= t < b else 0.0
-            pos = np.array([0.0, y_open + close * (y_closed - y_open), 0.05]) + offset
-            data.qpos[qadr:qadr + 7] = np.concatenate([pos - vel * model.opt.timestep, [1.0, 0.0, 0.0, 0.0]])
-            data.qvel[dadr:dadr + 6] = np.concatenate([vel, np.zeros(3)])
-        mujoco.mj_step(model, data)
-    rise, shift = float(data.qpos[2]) - start, float(data.qpos[0])
-    return {"scenario": "native-grip", "cone": cone, "impratio": float(impratio), "mug_rise_mm": 1e3 * rise,
-            "mug_shift_mm": 1e3 * shift, "finger_rise_mm": 1e3 * LIFT[2], "finger_shift_mm": 1e3 * CARRY[0]}
+    """Rests on the table until grasped, then rises and moves with the hand (slipping less than 2 mm), held by both pads."""
+    start = np.asarray(trace[0]["mug"])
+    grasped = next(r for r in trace if r["time"] >= GRASPED_AT)
+    end = trace[-1]
+    mug_move = np.asarray(end["mug"]) - np.asarray(grasped["mug"])
+    hand_move = np.asarray(end["hand"]) - np.asarray(grasped["hand"])
+    settled = max(float(np.linalg.norm(np.asarray(r["mug"]) - start)) for r in trace if r["time"] < 0.04)  # before the pads arrive
+    on_table = all(r["table"] for r in trace[2:] if r["time"] < 0.04)  # released at its resting height
+    slip = float(np.linalg.norm(mug_move - hand_move))
+    both = end["pads"] == sorted(PADS)
+    return {"mug_rise_mm": 1e3 * float(mug_move[2]), "mug_shift_mm": 1e3 * float(mug_move[0]),
+            "hand_rise_mm": 1e3 * float(hand_move[2]), "hand_shift_mm": 1e3 * float(hand_move[0]), "slip_mm": 1e3 * slip,
+            "resting_drift_mm": 1e3 * settled, "on_table_before_grasp": on_table, "pads_touching_end": end["pads"],
+            "tilt_deg_end": end["tilt_deg"],
+            "passed": bool(on_table and settled < 2e-3 and mug_move[2] > 0.02 and slip < 0.002 and both)}
 
 
 SCENARIOS = {
@@ -424,8 +312,7 @@ SCENARIOS = {
     "bottle-holder": Scenario("sim-bottle-holder.toml", _bottle_upright, record=_bottle_record),
     "gear-gear": Scenario("sim-gear-gear.toml", _gear_ratio, record=_gear_record, prepare=_gear_prepare),
     "bolt-nut": Scenario("sim-bolt-nut.toml", _bolt_advance, record=_bolt_record, prepare=_bolt_prepare, control=_nut_torque),
-    "gripper-mug": Scenario("sim-gripper-mug.toml", _gripper_carried, record=_gripper_record, prepare=_gripper_prepare,
-                            control=_gripper_control),
+    "gripper-mug": Scenario("sim-gripper-mug.toml", _gripper_carried, record=_gripper_record),
 }
 
 
@@ -433,15 +320,11 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=sorted(SCENARIOS), action="append", default=[],
                         help="scenario to run (repeat for several)")
-    parser.add_argument("--native-grip", action="store_true",
-                        help="also the gripper's motion on MuJoCo's own box contacts (no sdfzoo), for comparison")
     parser.add_argument("--seconds", type=float, default=None, help="simulated time (default: the scene's)")
     parser.add_argument("--out", type=Path, default=Path("out/sim-scenarios"))
     args = parser.parse_args(argv)
-    if not args.scene and not args.native_grip:
-        parser.error("name a --scene (or --native-grip)")
-    if args.native_grip:
-        print(json.dumps(native_grip(**gripper_friction_settings())), flush=True)
+    if not args.scene:
+        parser.error("name a --scene")
     for name in args.scene:
         result = run(name, args.seconds, args.out)
         summary = {k: result[k] for k in ("scenario", "passed", "steps", "wall_s", "steps_per_s", "max_penetration_mm", "max_contacts")}

@@ -1,9 +1,8 @@
 """Videos from MuJoCo's own renderer (``mujoco.Renderer``), offscreen: EGL or OSMesa, no window.
 
-MuJoCo picks its GL backend from ``MUJOCO_GL`` when ``mujoco`` is first imported, so :func:`choose_gl` runs
-before that: it keeps a ``MUJOCO_GL`` the user set, else probes EGL then OSMesa (Debian's ``libosmesa6``) in a
-child process and sets the first that renders. Where none does, callers fall back to the matplotlib drawing
-of :mod:`zoo.sim.animation` and say so.
+MuJoCo picks its GL backend from ``MUJOCO_GL`` when ``mujoco`` is first imported, so
+:func:`zoo.offscreen.choose_gl` runs before that (``zoo simulate`` calls it first). Where no backend renders,
+callers fall back to the matplotlib drawing of :mod:`zoo.sim.animation` and say so.
 
 :class:`VideoRecorder` renders a model's state frame by frame: its geoms (an SDF body is drawn as its visual
 geom, for :class:`zoo.sim.Simulation` a mesh extracted from its SDF) and the step's contacts (MuJoCo draws
@@ -14,8 +13,6 @@ the SDF bodies; it writes MP4 (with ``imageio-ffmpeg``) or GIF.
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,43 +20,7 @@ import numpy as np
 from ..errors import InputError, require
 from ..files import atomic_path
 
-BACKENDS = ("egl", "osmesa")
-PROBE = ("import mujoco; m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"1\"/></worldbody></mujoco>'); "
-         "r = mujoco.Renderer(m, 8, 8); d = mujoco.MjData(m); r.update_scene(d); r.render(); r.close()")
 FPS = 30
-CONTACT_RGBA = (0.9, 0.1, 0.1, 1.0)
-
-
-def choose_gl() -> str | None:
-    """The offscreen GL backend MuJoCo's renderer will use in this process, or None where none renders.
-
-    Sets ``MUJOCO_GL`` where it is unset and ``mujoco`` is not imported yet (it is read at import).
-    """
-    chosen = os.environ.get("MUJOCO_GL")
-    if chosen or "mujoco" in sys.modules:
-        return chosen or _probe_current()
-    for backend in BACKENDS:
-        try:
-            done = subprocess.run([sys.executable, "-c", PROBE], env={**os.environ, "MUJOCO_GL": backend},
-                                  capture_output=True, timeout=120)
-        except (OSError, subprocess.TimeoutExpired):
-            continue
-        if done.returncode == 0:
-            os.environ["MUJOCO_GL"] = backend
-            return backend
-    return None
-
-
-def _probe_current() -> str | None:
-    """Whether the already imported mujoco renders (it picked its backend at import)."""
-    import mujoco
-
-    try:
-        renderer = mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco><worldbody><geom size='1'/></worldbody></mujoco>"), 8, 8)
-        renderer.close()
-    except Exception:  # no GL context: glfw without a display, a missing library
-        return None
-    return os.environ.get("MUJOCO_GL") or "glfw"
 
 
 def free_camera(model, data, bodies: list[int], lookat=None, distance: float | None = None,

@@ -110,6 +110,18 @@ class SdfBody:
 
 
 @dataclass
+class RefinedMesh:
+    """A pair's surface with its large triangles split once (:func:`zoo.sim.contacts.refine_to_size`), in the
+    frame of the surface it comes from: vertices (V, 3), faces (F, 3), origin (F,) the surface's own face each
+    face comes from, normals (F, 3) unit face normals."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    origin: np.ndarray
+    normals: np.ndarray
+
+
+@dataclass
 class Pair:
     """One SDF body and one thing it may touch.
 
@@ -119,8 +131,8 @@ class Pair:
         params: the pair's mixed contact parameters.
         frame: "geom" (the surface is in ``geom``'s frame) or "body" (in ``body``'s: another SDF body's surface).
         vertices, faces: (V, 3), (F, 3) the other side's surface in that frame as given; None for a plane.
-        refined: (vertices, faces, origin (F',) input face of each, unit normals (F', 3)) refined once, or None
-            where the refinement happens near the SDF at each step (a large mesh) or not at all (a plane).
+        refined: the :class:`RefinedMesh` the collider answers on, or None where the refinement happens near
+            the SDF at each step (a large mesh) or not at all (a plane).
         collider: the pair's ``zoo.CoherentCollider`` on ``refined`` (None without it).
     """
 
@@ -131,12 +143,16 @@ class Pair:
     frame: str
     vertices: np.ndarray | None = None
     faces: np.ndarray | None = None
-    refined: tuple | None = None
+    refined: RefinedMesh | None = None
     collider: object = None
 
     @property
     def is_plane(self) -> bool:
         return self.vertices is None
+
+    def surface_pose(self, data) -> np.ndarray:
+        """(4, 4) world-from-surface: the pose of the frame ``vertices`` and ``refined`` are in, at ``data``'s kinematics."""
+        return geom_pose(data, self.geom) if self.frame == "geom" else body_pose(data, self.body)
 
 
 @dataclass
@@ -283,7 +299,7 @@ class World:
             mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
             pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
                                                  coherence=self.coherence)
-            pair.refined = (vertices, faces, origin, face_normals(vertices[faces]))
+            pair.refined = RefinedMesh(vertices, faces, origin, face_normals(vertices[faces]))
         return pair
 
     def _method_for(self, sdf) -> str:
@@ -360,6 +376,16 @@ class World:
         self.contact_geoms = np.concatenate(geoms) if geoms else np.zeros((0, 2), dtype=np.int32)
         return added
 
+    def pair(self, sdf_body: str, other_body: str) -> Pair:
+        """The first pair of SDF body ``sdf_body`` with a geom (or the surface) of body ``other_body``."""
+        import mujoco
+
+        other = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, other_body)
+        for pair in self.pairs:
+            if pair.sdf_body.name == sdf_body and pair.body == other:
+                return pair
+        raise InputError(f"no pair of SDF body {sdf_body!r} with body {other_body!r}")
+
     def reset(self) -> None:
         """Forget what the colliders carried from step to step (after a reset of the data, say)."""
         for pair in self.pairs:
@@ -403,9 +429,6 @@ class World:
         stats.max_penetration = deepest
         return rows, collected, geoms, stats
 
-    def _other_pose(self, pair: Pair, data) -> np.ndarray:
-        return geom_pose(data, pair.geom) if pair.frame == "geom" else body_pose(data, pair.body)
-
     def _closing_distance(self, pair: Pair, data) -> float:
         """Upper bound (m) on how much closer the pair's surfaces can get in one step.
 
@@ -422,7 +445,7 @@ class World:
     def _collide(self, pair: Pair, data, margin: float):
         """(zoo.Contacts in the world frame, kept indices, their :func:`as_numpy` arrays) of one pair, or None."""
         sdf_body = pair.sdf_body
-        t_sdf, t_other = body_pose(data, sdf_body.body), self._other_pose(pair, data)
+        t_sdf, t_other = body_pose(data, sdf_body.body), pair.surface_pose(data)
         if pair.is_plane:
             contacts, faces_world = self._collide_plane(pair, t_sdf, t_other, margin)
         else:
@@ -433,10 +456,9 @@ class World:
             if pair.collider is None:
                 contacts, faces_world = self._collide_refining_near(pair, t_sdf, t_other, margin)
             else:
-                vertices, faces, origin, normals = pair.refined
                 contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
-                faces_world = normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
-                contacts.triangles = torch.as_tensor(origin)[contacts.triangles]  # back to the surface's own faces
+                faces_world = pair.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
+                contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]  # back to the surface's own faces
         if contacts is None or len(contacts) == 0:
             return None
         points, depths, normals = as_numpy(contacts)
@@ -551,4 +573,4 @@ def _concat_contacts(parts):
                         n_candidates=sum(p.n_candidates for p in parts), method=parts[0].method)
 
 
-__all__ = ["attach", "World", "SdfBody", "Pair", "StepStats"]
+__all__ = ["attach", "World", "SdfBody", "Pair", "RefinedMesh", "StepStats"]
