@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 MAPPED = ("cli", "pipeline", "benches")
 
@@ -42,6 +44,7 @@ print("ok", sum(m.startswith("sdfzoo.") for m in sys.modules))
 """
 
 
+@pytest.mark.slow
 def test_every_module_imports_under_its_sdfzoo_name_alone_from_the_clone():
     """From the clone's root (where `import pipeline` would find the folder), importing everything
     loads no module under a second, top-level name."""
@@ -50,6 +53,7 @@ def test_every_module_imports_under_its_sdfzoo_name_alone_from_the_clone():
     assert done.stdout.startswith("ok ")
 
 
+@pytest.mark.slow
 def test_python_m_entry_points_work_from_the_clone(tmp_path):
     for args in (["-m", "sdfzoo.cli", "list"], ["-m", "sdfzoo.cli.main", "list"]):
         done = subprocess.run([sys.executable, *args], cwd=tmp_path, capture_output=True, text=True, timeout=300)
