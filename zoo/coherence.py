@@ -70,26 +70,24 @@ COLD, WARM, KEPT = 0, 1, 2  # how a candidate is answered: from scratch, from it
 # longest edge since the last step: farther, its last answer says little about the new minimum.
 WARM_REACH = 0.5
 # The Lipschitz bound a carried vertex bound decays with where the SDF is not an exact distance (a NeuralSDF,
-# a voxel grid, a caller's SDF without a ``lipschitz`` attribute). The mugs model's hoi4d_mug_0001 has
-# |grad f| <= 1.68 at 99.9% of points within 2 mm of its surface (2.4 at most; 2.1 and 3.4 within 3 cm):
-# a learned SDF is only roughly 1-Lipschitz, and a bound carried over a motion inherits the error.
+# a voxel grid, a caller's SDF without a ``lipschitz`` attribute). A learned SDF is only roughly 1-Lipschitz
+# (docs/coherence.md measures a packaged mug's gradient norms), and a bound carried over a motion inherits the error.
 LEARNED_LIPSCHITZ = 2.0
 # Value queries refining each line search of a warm step. One: a second sample lands next to the first once
 # the search has converged, and the interpolation through two nearly equal samples can throw the step far
-# off (zoo.solvers._interpolation_step: on a sphere over a plane, 2 samples ended 2e-5 m above 1 sample).
+# off (zoo.solvers._interpolation_step).
 WARM_LINE_STEPS = 1
 BOUNDARY = 1e-6  # barycentric coordinates this small put a warm start on its triangle's boundary
 # A warm step that stops on an edge from inside the face takes this many more (an exit point is rarely the
 # edge's minimum).
 WARM_EDGE_STEPS = 1
 # A warm answer whose Frank-Wolfe gap (SDF units) exceeds this is solved from scratch too. Warm answers on smooth
-# SDFs stay far below it (sphere on a plane: 2.9e-6 at most; torus: 7.9e-5; the demo mug sliding 0.5 mm per
-# step: 0.02% of them above); inside a box, whose SDF has kinks where a line search stalls, 23% are above.
+# SDFs stay far below it; on a box, whose SDF has kinks where a line search stalls, many are above.
 RETRY_GAP = 1e-4
 # A candidate whose points moved less than this fraction of the margin (relative to the SDF) since it was last
 # solved keeps its answer, its depth moved to first order along its normal, as a persistent contact manifold
-# does (Bullet keeps a contact while it drifts less than 2% of the body's size). The depth's error is second
-# order in the drift where the surface is smooth (0.2 mm along a 5 mm radius: 4 um), and the drift is measured
+# does (Bullet keeps a contact while it drifts a small fraction of the body's size). The depth's error is second
+# order in the drift where the surface is smooth, and the drift is measured
 # from where the face was last solved, so a sliding contact is solved again every few steps.
 REUSE_FRACTION = 0.2
 # When some kept answer is due to be solved again, those that drifted more than this fraction of ``reuse_distance``

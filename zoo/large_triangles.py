@@ -13,7 +13,7 @@ the SDF's bounds grown by the margin, and those whose Lipschitz lower bound from
 corners exceeds it (:func:`zoo.bounds.cell_lower_bounds`). What is left is a few hundred
 pieces around the SDF, whatever the triangle's size; the narrow phase solves them and
 :func:`best_pieces` keeps, per triangle, the piece with the lowest answer, so a triangle still
-gives one contact. docs/collide-large-triangles.md measures the error with and without.
+gives one contact. docs/measurements.md measures the error with and without.
 """
 
 from __future__ import annotations

@@ -33,10 +33,9 @@ from .sdf import SDFBase
 from .validation import as_points
 
 # Queries are evaluated in chunks so that the (chunk, n_codes) weight matrix stays around
-# 1M floats (4 MB in float32: 4096 points of 256 codes), whatever the number of points. Chunks
-# this size keep the weights and the decoder's activations in cache: on one CPU core a value
-# query costs ~9 us per point in 4096-point chunks against ~15 us in 65536-point ones, and a
-# value-and-gradient query ~22 against ~40 (bolts model, 32k points).
+# 1M floats (4096 points of 256 codes), whatever the number of points: chunks this size keep the
+# weights and the decoder's activations in cache, faster per point than large chunks
+# (docs/measurements.md, the chunk sweep).
 _CHUNK_ELEMENTS = 1 << 20
 
 
@@ -262,7 +261,7 @@ class InferenceDecoder:
     Each hidden layer's bias is folded into its weight (a column of ones rides along with the
     input) and the skip input [z; x; 1] sits once in a reused buffer beside the previous layer's
     activation, so a layer is one matmul and one in-place LeakyReLU: no concatenation copies,
-    no bias broadcast (~15% less time on one CPU core, the same values). Only for decoders whose
+    no bias broadcast (less time, the same values). Only for decoders whose
     hidden layers share one width and re-feed the input (every packaged model); others use
     :meth:`Decoder.forward`. Rebuilt when the decoder's parameters change in place.
     """

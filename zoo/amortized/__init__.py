@@ -13,8 +13,8 @@ barycentrics.
 After the forward pass comes the polish (``polish=True``, the default). First the vertex test: the gradient at
 each in-range triangle's lowest vertex (one value-and-gradient query per distinct vertex, shared by the
 triangles around it); where no other vertex has a lower g . v_i, that vertex satisfies the KKT
-conditions and is the answer (81% of the bench's mug triangles, 68-99% of the scenes' in-range
-candidates), with no network and no further query. The rest take the network's answer and
+conditions and is the answer, with no network and no further query (most in-range triangles:
+docs/results.md measures how many, on the detector bench and the scenes). The rest take the network's answer and
 ``POLISH_ROUNDS`` Frank-Wolfe steps with a parabolic line search (:func:`zoo.solvers.line_search_step`:
 the exact gradient at the point, ``POLISH_LINE_STEPS`` values along the step), which get what
 Frank-Wolfe's fixed steps need tens of gradient queries for; ``polish=False`` gives the forward pass

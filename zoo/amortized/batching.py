@@ -11,7 +11,7 @@ from .points import PointTable
 from .polish import POLISH_ROUNDS, polish
 from .subdivision import BISECTION_LEVEL, grid_barycentrics, to_parent
 
-NETWORK_CHUNK = 4096  # default pieces per network call: cache-sized (docs/measurements.md)
+NETWORK_CHUNK = 4096  # default pieces per network call, cache-sized like the NeuralShape chunks (docs/measurements.md)
 
 
 def answer_pieces(detector: AmortizedDetector, shape, tri_n, table: PointTable, pieces: list, best: BestSoFar,

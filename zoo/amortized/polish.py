@@ -18,14 +18,12 @@ from torch.nn import functional as F
 from .best import BestSoFar
 from .points import PointTable
 
-# Value queries after the polish's gradient query (zoo.solvers.line_search_step). On the bench's 800
-# seen-mug triangles (4 mugs x 200, mugs@1.3.0) the polished mean optimality was 1.4e-3 with none,
-# 6.5e-4 with one, 3.6e-4 with two and 3.2e-4 with three (one step, before the vertex test).
+# Value queries after the polish's gradient query (zoo.solvers.line_search_step): two, where the detector
+# bench's optimality stops improving (docs/detector-notes.md, the polish).
 POLISH_LINE_STEPS = 2
 # Line-search steps per polished in-range answer (a regularly subdivided triangle's lowest piece takes one). The
-# vertex test settles 80-99% of in-range triangles first, so the polish runs on the rest only. Same
-# triangles: 3.3e-4 with one step, 2.4e-4 with two, 1.4e-4 with three; but three cost the scene bench's
-# contact check (a mug cut by a 20k-triangle mesh, 29% of its candidates polished) its 2x over FW.
+# vertex test settles most in-range triangles first, so the polish runs on the rest only; a third step would
+# improve optimality but cost the scene bench's contact check its lead over FW (docs/detector-notes.md).
 POLISH_ROUNDS = 2
 
 
