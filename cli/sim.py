@@ -19,14 +19,22 @@ def simulate(
     seconds: float = typer.Option(None, "--seconds", help="Simulated time (default: the scene's [sim] seconds)."),
     dt: float = typer.Option(None, "--dt", help="Time step, s (default: the scene's)."),
     method: str = typer.Option(None, "--method", help="zoo.collide's narrow phase: fw, pgd, voxel-fw, amortized (default: the scene's)."),
-    out: Path = typer.Option(Path("out/simulate"), "--out", help="Folder for <name>.h5, .json, .png and .gif."),
-    animation: bool = typer.Option(True, "--animation/--no-animation", help="Also write <name>.gif: the bodies and their contacts (red), "
-                                   "at most 60 frames over the run."),
+    out: Path = typer.Option(Path("out/simulate"), "--out", help="Folder for <name>.h5, .json, .png and the video."),
+    animation: bool = typer.Option(True, "--animation/--no-animation", help="Also write a video of the bodies and their contacts: "
+                                   "MuJoCo's renderer (offscreen: EGL or OSMesa) from the scene's camera, else matplotlib (a GIF)."),
+    video: str = typer.Option("mp4", "--video", help="The rendered video's format: mp4 or gif."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar with ETA."),
 ):
     """Simulate a scene: HDF5 trajectory (with provenance), per-step stats (JSON), a PNG of penetration, contacts and time per step,
-    and an animation (GIF) of the bodies and their contacts."""
+    and a video of the bodies and their contacts."""
     from rich.console import Console
+
+    from zoo.errors import InputError
+    from zoo.offscreen import choose_gl
+
+    if video not in ("mp4", "gif"):
+        raise InputError(f"--video {video!r}: use mp4 or gif")
+    gl = choose_gl() if animation else None  # before mujoco is imported: it reads MUJOCO_GL once
 
     import zoo.sim
     from zoo.progress import task_bar
@@ -37,15 +45,29 @@ def simulate(
     sim = zoo.sim.load_scene(scene, dt=dt, method=method)
     seconds = sim.seconds if seconds is None else seconds
     steps = max(0, int(round(seconds / sim.dt)))
-    recorder = Recorder(sim)
+    camera = None
+    if animation and gl:
+        from zoo.sim.render import VideoRecorder, scene_camera
+
+        sim.build()
+        camera = VideoRecorder(sim.model, camera=scene_camera(sim))
+        console.print(f"rendering with MuJoCo's renderer (MUJOCO_GL={gl})")
+    elif animation:
+        console.print("[yellow]no OpenGL for MuJoCo's offscreen renderer (MUJOCO_GL=egl, or osmesa with Debian's libosmesa6): "
+                      "drawing the animation with matplotlib[/yellow]")
+    recorder = Recorder(sim, video=camera, frame_every=max(1, steps // 120))
     with task_bar(progress, f"{sim.name}: {seconds:g} s at dt {sim.dt * 1e3:g} ms", steps) as bar:
         for _ in range(steps):
             sim.step()
             recorder(sim)
             bar.advance()
-    if animation:
+    if animation and camera is None:
         console.print(f"drawing the animation ({min(steps, MAX_FRAMES)} frames)")
-    paths = recorder.write(out, provenance(sim, sim.scene_path), animation=animation)
+    try:
+        paths = recorder.write(out, provenance(sim, sim.scene_path), animation=animation, video_format=video)
+    finally:
+        if camera is not None:
+            camera.close()
     summary = recorder.summary()
     console.print(
         f"{summary['steps']} steps, {summary['simulated_s']:.3f} s simulated; max penetration "

@@ -349,3 +349,24 @@ def test_a_gripper_of_primitives_lifts_the_neuralsdf_mug_the_same_through_step_a
     rise_mug, rise_hand = end["mug"][2] - grasped["mug"][2], end["hand"][2] - grasped["hand"][2]
     assert rise_hand > 0.025 and abs(rise_mug - rise_hand) < 2e-3
     np.testing.assert_array_equal(np.stack([r["state"] for r in hooked["trace"]]), np.stack([r["state"] for r in trace]))
+
+
+def test_surface_extraction_queries_near_the_surface_only_and_matches_a_dense_grid(monkeypatch):
+    """zoo.sim.surface's narrow-band sampling gives the dense grid's signs everywhere and its values near the surface;
+    a sphere's extracted vertices lie on it within a small fraction of a cell."""
+    from zoo.sim import surface
+
+    shape = zoo.Torus(major=0.05, minor=0.015)
+    sparse, lo, cell = surface.sdf_grid(shape, 40)
+    monkeypatch.setattr(surface, "COARSE", 1)
+    dense, lo_dense, _ = surface.sdf_grid(shape, 40)
+    n = tuple(min(a, b) for a, b in zip(sparse.shape, dense.shape))
+    a, b = sparse[:n[0], :n[1], :n[2]], dense[:n[0], :n[1], :n[2]]
+    assert np.allclose(lo, lo_dense) and np.array_equal(np.sign(a), np.sign(b))
+    near = np.abs(b) < 2 * cell[0]
+    assert near.sum() > 1000 and np.abs(a - b)[near].max() < 1e-6
+    monkeypatch.setattr(surface, "COARSE", 4)
+    vertices, faces = surface.surface_mesh(zoo.Sphere(radius=0.05), 64)
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 0.05).max() < 0.05 * (0.11 / 64)
+    normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    assert (np.einsum("ij,ij->i", normals, vertices[faces].mean(axis=1)) > 0).all()  # outward

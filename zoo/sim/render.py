@@ -39,6 +39,24 @@ def free_camera(model, data, bodies: list[int], lookat=None, distance: float | N
     return camera
 
 
+def scene_camera(sim):
+    """The camera a :class:`zoo.sim.Simulation`'s video uses: its scene's ``camera`` (a camera of its model by name,
+    or a table of :func:`free_camera`'s lookat, distance, azimuth and elevation), else a free camera aimed at its
+    SDF bodies."""
+    sim.build()
+    bodies = [b.body for b in sim.world.bodies.values()]
+    if isinstance(sim.camera, str):
+        return sim.camera
+    if isinstance(sim.camera, dict):
+        unknown = set(sim.camera) - {"lookat", "distance", "azimuth", "elevation"}
+        if unknown:
+            raise InputError(f"[sim] camera: unknown keys {sorted(unknown)}; use lookat, distance, azimuth, elevation")
+        return free_camera(sim.model, sim.data, bodies, **sim.camera)
+    if sim.camera is not None:
+        raise InputError(f"[sim] camera must be a camera's name or a table, got {sim.camera!r}")
+    return free_camera(sim.model, sim.data, bodies)
+
+
 class VideoRecorder:
     """Frames of a model's state from MuJoCo's renderer, with the contacts drawn; :meth:`write` saves them.
 
