@@ -614,6 +614,21 @@ class NeuralShape(SDFBase):
         known = Known(vertex_values=vertex_values) if known is None else Known(*known, vertex_values=vertex_values)
         return solve_mesh(self.model.detector, self, vertices, faces, SolveOptions(cutoff=cutoff, polish=polish), known)
 
+    def scaled(self, factor: float) -> NeuralShape:
+        """The same shape ``factor`` times larger, about its frame's origin (a source mesh in other units than
+        metres: ``factor`` 0.001 for millimetres). The similarity takes the factor (``p_n = (s / factor) R p + t``),
+        so the detector and every query work as on this shape and distances come back ``factor`` times larger."""
+        from .meshes import Similarity
+        from .validation import positive_float
+
+        factor = positive_float(factor, "scale factor")
+        sim = self.similarity
+        out = NeuralShape(self.name, self.decoder, self.config, self.codes, self.positions,
+                          Similarity(sim.scale / factor, sim.rotation, sim.translation), self.model)
+        out._copies = self._copies  # the same decoder and code cloud: share their converted copies
+        out.fit, out.metrics = dict(self.fit), dict(self.metrics)
+        return out
+
     def to(self, device) -> NeuralShape:
         """A copy whose tensors live on ``device`` (inputs on other devices are handled too)."""
         import copy

@@ -9,6 +9,7 @@ refine = 0                # FW steps warm-started from the method's answer
 [sdf]
 model = "mugs"            # a packaged model by name (zoo.load), with
 shape = "hoi4d_mug_0001"  # one of its shapes; or `fit = "new_mug.obj"` to fit_codes a mesh (every load)
+# scale = 0.2             # the shape this many times larger (a source mesh in other units than metres)
 # codes = "new_mug.safetensors"   # or a shape fitted once and saved (shape.save, `zoo fit-codes --out`):
 #                                 # loads the model it names, or `model`'s if given (refused if not the same)
 # analytic = "sphere", params = { radius = 0.05 }   # an analytic SDF instead of a model
@@ -151,6 +152,11 @@ def scene_from_dict(spec: dict, base_dir: Path = Path(".")) -> Scene:
 
 
 def _build_sdf(spec: dict, base_dir: Path):
+    if "scale" in spec:  # a source mesh in other units than metres: the shape `scale` times larger
+        sdf, label = _build_sdf({k: v for k, v in spec.items() if k != "scale"}, base_dir)
+        if not callable(getattr(sdf, "scaled", None)):
+            raise InputError(f"[sdf] scale applies to a model's shape (model, codes); {type(sdf).__name__} cannot be scaled")
+        return sdf.scaled(spec["scale"]), f"{label} x{spec['scale']}"
     if "analytic" in spec:
         kind = spec["analytic"]
         if kind not in ANALYTIC:

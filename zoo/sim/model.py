@@ -200,7 +200,12 @@ def new_spec(mjcf: str | os.PathLike | None = None):
     path = Path(mjcf)
     if not path.is_file():
         raise InputError(f"no MJCF file at {path}")
+    from .robots import robot_files  # robots/NAME/... references: a robot kept outside the repository
+
+    include, assets = robot_files(path)
     try:
+        if include or assets:
+            return mujoco.MjSpec.from_file(str(path), include=include, assets=assets)
         return mujoco.MjSpec.from_file(str(path))
     except Exception as exc:  # MuJoCo's parser: a ValueError with its own message
         raise InputError(f"MuJoCo cannot read {path}: {exc}") from exc

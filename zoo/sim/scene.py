@@ -20,6 +20,7 @@ impratio = 1.0
 coherence = true                # carry bounds and answers from step to step (zoo.CoherentCollider)
 camera = "side"                 # the video's camera: one of the MJCF's, or { lookat = [x, y, z], distance = 0.3,
                                 # azimuth = 135, elevation = -25 }; default: aimed at the SDF bodies
+# qpos = { joint = 0.5 }        # initial positions of the MJCF's hinge and slide joints (default: the MJCF's qpos0)
 
 [[control]]                     # waypoints (zoo.sim.control): mocap positions and actuator controls over time
 time = 0.0
@@ -59,8 +60,8 @@ from ..scenes import _build_mesh, _build_sdf, pose_matrix, read_scene
 from .simulation import Simulation
 
 SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "cone", "impratio", "sdf_mass", "drop",
-            "reduce", "refine", "coherence", "camera"}
-SCENE_ONLY = ("seconds", "drop", "sdf_mass", "camera")  # [sim] keys that are not Simulation's arguments
+            "reduce", "refine", "coherence", "camera", "qpos"}
+SCENE_ONLY = ("seconds", "drop", "sdf_mass", "camera", "qpos")  # [sim] keys that are not Simulation's arguments
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
 
 
@@ -104,6 +105,7 @@ def scene_simulation(spec: dict, base_dir: Path = Path("."), **overrides) -> Sim
     sim.name = spec.get("name", "scene")
     sim.seconds = float(sim_spec.get("seconds", 1.0))
     sim.camera = sim_spec.get("camera")
+    sim.initial_qpos = dict(sim_spec.get("qpos", {}))
     sim.control = list(spec.get("control", []))
     bodies = spec.get("bodies")
     if bodies is None:

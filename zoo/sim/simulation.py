@@ -87,6 +87,8 @@ class Simulation:
     Attributes:
         control: waypoints for the model's mocap bodies and actuators (:mod:`zoo.sim.control`), set before the
             first step.
+        initial_qpos: {joint name: position} for the MJCF's hinge and slide joints at the start (a robot's
+            home posture; a scene's ``[sim] qpos``), set before the first step.
         name, seconds, labels, camera, scene_path: what a scene file said (``zoo simulate`` reads them): the run's
             name, its length (s), each body's source, the camera of its video, and the file.
         model, data: MuJoCo's own objects (after the first step or :meth:`build`).
@@ -131,6 +133,7 @@ class Simulation:
         # what a scene file says of the run (zoo.sim.scene): its name, length, bodies' sources, camera, file
         self.name, self.seconds, self.labels, self.camera, self.scene_path = "simulation", 1.0, {}, None, None
         self.control: list[dict] = []  # waypoints (zoo.sim.control), applied before every step
+        self.initial_qpos: dict[str, float] = {}  # initial positions of the MJCF's hinge and slide joints, by name
         self.waypoints = None
         self._warnings_seen = None
 
@@ -203,6 +206,7 @@ class Simulation:
             add_body(self.spec, body, self.settings, visual)
         self.model, self.data = compile_spec(self.spec)
         bind_bodies(bodies, self.model, self.data)
+        self._set_initial_qpos()
         if self.model.nv == 0:
             raise InputError("nothing moves: every body is fixed; give one a free, hinge or slide joint")
         sdfs = {b.name: b.sdf for b in bodies if b.sdf is not None}
@@ -220,6 +224,15 @@ class Simulation:
         # a body pushed deeper than this into a mesh is reported: past its middle a thin mesh's contacts push it through
         self._tunnel_depth = TUNNEL_FRACTION * min((float((b.hi - b.lo).min()) for b in self.world.bodies.values()), default=math.inf)
         mujoco.mj_forward(self.model, self.data)  # kinematics of the initial state, for pose()
+
+    def _set_initial_qpos(self) -> None:
+        import mujoco
+
+        for name, value in self.initial_qpos.items():
+            joint = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if joint < 0 or self.model.jnt_type[joint] not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                raise InputError(f"initial qpos names {name!r}, which is not a hinge or slide joint of the model")
+            self.data.qpos[self.model.jnt_qposadr[joint]] = float(value)
 
     # -- stepping -----------------------------------------------------------------------
 
