@@ -6,6 +6,9 @@ import pytest
 from tiny_packages import BOTTLE_SHAPES, MUG_SHAPES, make_fit_output
 
 from zoo import registry
+from zoo.offscreen import choose_gl
+
+choose_gl()  # before any test imports mujoco, which reads MUJOCO_GL once: EGL or OSMesa where one renders
 
 
 @pytest.fixture

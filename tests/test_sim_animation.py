@@ -74,8 +74,9 @@ def test_frames_are_spread_over_the_run_and_capped():
     assert len(frame_steps(0)) == 0
 
 
-@pytest.mark.parametrize("flag, gif", [([], True), (["--no-animation"], False)])
+@pytest.mark.parametrize("flag, gif", [(["--video", "gif"], True), (["--no-animation"], False)])
 def test_zoo_simulate_writes_the_gif_unless_told_not_to(tmp_path, flag, gif):
+    """A GIF with a frame per step (MuJoCo's renderer where GL renders, matplotlib where not; the output says which)."""
     from typer.testing import CliRunner
 
     from sdfzoo.cli import sim as _  # noqa: F401  (registers the command)
@@ -87,6 +88,7 @@ def test_zoo_simulate_writes_the_gif_unless_told_not_to(tmp_path, flag, gif):
     assert result.exit_code == 0, result.output
     assert (tmp_path / "ring-rack.png").exists() and (tmp_path / "ring-rack.gif").exists() == gif
     if gif:
+        assert "MuJoCo's renderer" in result.output or "matplotlib" in result.output
         assert iio.imread(tmp_path / "ring-rack.gif", index=None).shape[0] == 3
 
 

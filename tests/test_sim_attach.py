@@ -371,3 +371,37 @@ def test_surface_extraction_queries_near_the_surface_only_and_matches_a_dense_gr
     normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
     outward = np.einsum("ij,ij->i", normals, vertices[faces].mean(axis=1))
     assert (outward[np.linalg.norm(normals, axis=1) > 0] > 0).all()  # every face with an area faces out
+
+
+# -- MuJoCo's renderer ------------------------------------------------------------------------------
+
+def test_mujocos_renderer_draws_the_attached_body_and_its_contacts(tmp_path):
+    """Offscreen (EGL or OSMesa, chosen by zoo.offscreen before mujoco loaded): the ball resting on the floor is drawn,
+    its sdfzoo contacts add pixels when the contact flags are on, and the frames are written as a GIF and an MP4."""
+    from zoo.offscreen import choose_gl
+
+    if choose_gl() is None:
+        pytest.skip("no offscreen OpenGL here (MUJOCO_GL=egl, or osmesa with Debian's libosmesa6)")
+    import imageio.v3 as iio
+
+    from zoo.sim.render import VideoRecorder, free_camera
+
+    xml = _ball_on('<geom type="plane" size="1 1 0.1" rgba="0.5 0.5 0.5 1"/>', BALL)
+    xml = xml.replace(f'type="sphere" size="{BALL}"', 'type="sphere" size="0.01"')  # a small visual: the contact shows
+    xml = xml.replace("<worldbody>", '<visual><scale contactwidth="1" contactheight="0.3"/></visual><worldbody><light pos="0 0 1"/>')
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    world = zoo.sim.attach(model, {"ball": zoo.Sphere(radius=BALL)}, method="fw")
+    world.step(data, 20)
+    assert data.ncon >= 1
+    camera = free_camera(model, data, [model.body("ball").id], lookat=(0.0, 0.0, 0.0), distance=0.15)
+    with VideoRecorder(model, camera=camera, width=160, height=120, contacts=True) as with_contacts, \
+            VideoRecorder(model, camera=camera, width=160, height=120, contacts=False) as without:
+        drawn, plain = with_contacts.capture(data), without.capture(data)
+        assert plain.std() > 5  # not a blank frame: the ball over the floor
+        assert (np.abs(drawn.astype(int) - plain.astype(int)).sum(axis=2) > 30).sum() > 20  # the contacts' marks
+        world.step(data)
+        with_contacts.capture(data)
+        gif, mp4 = with_contacts.write(tmp_path / "ball.gif", fps=10), with_contacts.write(tmp_path / "ball.mp4", fps=10)
+    assert iio.imread(gif, index=None).shape[:3] == (2, 120, 160)
+    assert mp4.stat().st_size > 0

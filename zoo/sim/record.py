@@ -153,6 +153,11 @@ def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
         "scene": str(scene_path) if scene_path else "", "scene_sha256": sha256_file(scene_path) if scene_path else "",
         "bodies": json.dumps(sim.labels), "mjcf": str(sim.mjcf or ""), "method": sim.method, "dt": sim.dt,
         "margin": sim.margin, "friction": sim.settings.friction, "solref": json.dumps(list(sim.settings.solref)),
-        "integrator": mujoco.mjtIntegrator(int(m.opt.integrator)).name, "cone": mujoco.mjtCone(int(m.opt.cone)).name,
+        "integrator": _option_name(mujoco.mjtIntegrator(int(m.opt.integrator))), "cone": _option_name(mujoco.mjtCone(int(m.opt.cone))),
         "impratio": float(m.opt.impratio), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+
+
+def _option_name(value) -> str:
+    """MuJoCo's enum member as its MJCF attribute value: mjCONE_PYRAMIDAL -> "pyramidal", mjINT_IMPLICITFAST -> "implicitfast"."""
+    return value.name.split("_", 1)[1].lower()
