@@ -230,7 +230,7 @@ class Simulation:
 
         for name, value in self.initial_qpos.items():
             joint = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, name)
-            if joint < 0 or self.model.jnt_type[joint] not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            if joint < 0 or int(self.model.jnt_type[joint]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
                 raise InputError(f"initial qpos names {name!r}, which is not a hinge or slide joint of the model")
             self.data.qpos[self.model.jnt_qposadr[joint]] = float(value)
 
