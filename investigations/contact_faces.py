@@ -6,7 +6,7 @@ build) with ``zoo.collide`` from scratch at that pose, and prints per pair: the 
 minimum lies within the margin (the contacts any method must find), their depths and their widths
 (twice the area over the longest edge) and lengths. A profile of what a step costs, not a timing:
 
-    python -m sdfzoo.benches.contact_faces --scene mug-rack --steps 80
+    python -m investigations contact_faces --scene mug-rack --steps 80
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import json
 import numpy as np
 import torch
 
+from investigations.report import write_report
 from zoo.geometry import edge_lengths
 
 PERCENTILES = (0, 10, 50, 90, 100)
@@ -85,14 +86,13 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=sorted(SCENARIOS), required=True)
     parser.add_argument("--steps", type=int, default=80, help="steps simulated before counting (default 80)")
+    parser.add_argument("--out", default="out/contact-faces.json")
     args = parser.parse_args(argv)
     from sdfzoo.benches.sim_scenarios import require_meshes
 
     require_meshes()
     torch.set_num_threads(1)
-    for row in contact_faces(args.scene, args.steps):
+    rows = contact_faces(args.scene, args.steps)
+    for row in rows:
         print(json.dumps(row))
-
-
-if __name__ == "__main__":
-    main()
+    write_report(args.out, {"scenario": args.scene, "steps": args.steps, "rows": rows}, __name__, argv)

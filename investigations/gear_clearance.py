@@ -8,19 +8,17 @@ those points to the large gear: the exact distance to its mesh, and the NeuralSD
 without jamming needs an offset range where the clearance stays positive (the backlash); the exact column is
 the meshes' own, the NeuralSDF column what a simulation on the model sees.
 
-    python -m sdfzoo.benches.gear_clearance --shift 0 --out out/gear-clearance.json
+    python -m investigations gear_clearance --shift 0 --out out/gear-clearance.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 import numpy as np
 
+from investigations.report import write_report
 from sdfzoo.benches.sim_scenarios import GEAR_CENTRES, GEAR_FILES, _mesh, count_teeth
-from zoo.files import atomic_write_text
 
 
 def _turn(points: np.ndarray, centre, angle: float) -> np.ndarray:
@@ -71,15 +69,10 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="gears", help="the gears model (name, name@version or a package folder)")
     parser.add_argument("--shift", type=float, default=0.0, help="m: the medium gear's axis moved this far along +x")
-    parser.add_argument("--out", type=Path, default=None, help="JSON file to write")
+    parser.add_argument("--out", default="out/gear-clearance.json", help="JSON file to write")
     args = parser.parse_args(argv)
     rows = clearance(args.model, shift=args.shift)
     print("| offset deg | exact mm | NeuralSDF mm |\n|---|---|---|")
     for r in rows:
         print(f"| {r['offset_deg']:+.2f} | {1e3 * r['exact_m']:.3f} | {1e3 * r['neural_m']:.3f} |")
-    if args.out:
-        atomic_write_text(args.out, json.dumps({"model": args.model, "shift_m": args.shift, "rows": rows}, indent=1))
-
-
-if __name__ == "__main__":
-    main()
+    write_report(args.out, {"model": args.model, "shift_m": args.shift, "rows": rows}, __name__, argv)

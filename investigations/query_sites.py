@@ -6,7 +6,7 @@ asked for it (its call site). Prints per site the calls, points and milliseconds
 collision time per step that the queries leave (bookkeeping: bounds, selection, the solvers' own
 arithmetic). The first ``--skip`` steps are not counted. One torch thread; the timers add a little.
 
-    python -m sdfzoo.benches.query_sites --scene mug-rack --steps 100 --out out/query-sites-mug-rack.json
+    python -m investigations query_sites --scene mug-rack --steps 100 --out out/query-sites-mug-rack.json
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sdfzoo.benches.report import write_report
+from investigations.report import write_report
 
 _INSIDE = ("neural.py", "sdf.py", "query_sites.py")  # frames of the query itself, not its caller
 
@@ -109,8 +109,4 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'kind':<10} {'calls':>5} {'points':>7} {'ms':>6}  site (per step)")
     for r in result["sites"]:
         print(f"{r['kind']:<10} {r['calls_per_step']:>5.1f} {r['points_per_step']:>7.0f} {r['ms_per_step']:>6.2f}  {r['site']}")
-    write_report(args.out, result, "sdfzoo.benches.query_sites", argv)
-
-
-if __name__ == "__main__":
-    main()
+    write_report(args.out, result, __name__, argv)

@@ -8,7 +8,7 @@ Bolt-Nut face can be skipped or reused (docs/sim-bench.md). This bench measures 
 checks the bolts model's NeuralSDF and, as the control, the exact signed distance of the bolt mesh the
 model was fitted to. A pure turn (no advance) is measured beside the screw, for scale.
 
-    python -m sdfzoo.benches.screw_symmetry --out out/screw-symmetry.json
+    python -m investigations screw_symmetry --out out/screw-symmetry.json
 
 Needs $ZOO_DATA (the bolt mesh; pitch and hand are measured on it by benches.sim_scenarios.thread_pitch).
 """
@@ -20,7 +20,7 @@ import argparse
 import numpy as np
 import torch
 
-from sdfzoo.benches.report import write_report
+from investigations.report import write_report
 
 ANGLES = (0.003, 0.01, 0.05, 0.2, 1.0)  # rad; a Bolt-Nut step turns the nut by about 0.003-0.006 rad
 THREAD_Z = (0.020, 0.036)  # m: inside the threaded shank (thread_pitch reads 0.018-0.038) after an advance of 1/6 mm
@@ -104,8 +104,4 @@ def main(argv: list[str] | None = None) -> None:
     for ns, nt, ex in zip(result["neural_screw"], result["neural_turn"], result["exact_screw"]):
         cells = [" ".join(f"{r[f'p{q}_mm']:.4f}" for q in PERCENTILES) for r in (ns, nt, ex)]
         print(f"{ns['theta']:>+9.3f} | {cells[0]:>28} | {cells[1]:>27} | {cells[2]:>23}")
-    write_report(args.out, result, "sdfzoo.benches.screw_symmetry", argv)
-
-
-if __name__ == "__main__":
-    main()
+    write_report(args.out, result, __name__, argv)

@@ -3,7 +3,7 @@
 Each call is timed ``repeats`` times per point count, the three kinds interleaved so that they share the
 machine's state; medians in ms. One torch thread, float32, points uniform in the shape's bounds.
 
-    python -m sdfzoo.benches.sdf_queries --model bottles --shape bulletarm_bottle1 --out out/sdf-queries.json
+    python -m investigations sdf_queries --model bottles --shape bulletarm_bottle1 --out out/sdf-queries.json
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import time
 import torch
 
 import zoo
-from sdfzoo.benches.report import write_report
+from investigations.report import write_report
 
 POINT_COUNTS = (8, 100, 1000)
 
@@ -62,8 +62,4 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{r['points']:>5} points: value {r['value_ms']:.3f} ms, value and gradient {r['value_and_grad_ms']:.3f} ms "
               f"(autograd {r['value_and_grad_autograd_ms']:.3f} ms)")
     write_report(args.out, {"model": f"{model.name}@{model.version}", "shape": args.shape, "rows": rows},
-                 "sdfzoo.benches.sdf_queries", argv)
-
-
-if __name__ == "__main__":
-    main()
+                 __name__, argv)

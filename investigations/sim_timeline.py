@@ -11,7 +11,7 @@ coherence) for ``--seconds`` and prints, per window of ``--window`` steps:
 A median over a whole run mixes phases: a falling body, an impact, a body at rest. This shows which phase
 costs what. One torch thread, as in ``zoo bench --sim``:
 
-    python -m sdfzoo.benches.sim_timeline --scene mug-rack --seconds 0.6 --out out/timeline-mug-rack.json
+    python -m investigations sim_timeline --scene mug-rack --seconds 0.6 --out out/timeline-mug-rack.json
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from dataclasses import asdict
 import numpy as np
 import torch
 
-from sdfzoo.benches.report import write_report
+from investigations.report import write_report
 
 COUNTERS = ("candidates", "warm", "reused", "cold")
 
@@ -77,8 +77,4 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{r['first_step']:>3}-{r['first_step'] + r['steps'] - 1:<4}| {r['collide_ms_median']:>11.1f} {r['collide_ms_p90']:>4.1f} |"
               f" {r['candidates_per_step']:>10.0f} {r['warm_per_step']:>5.0f} {r['reused_per_step']:>5.0f} |"
               f" {r['contacts_per_step']:>8.1f} | {r['penetration_mm_max']:>11.2f} | {r['speed_cm_s_end']:>10.2f}")
-    write_report(args.out, result, "sdfzoo.benches.sim_timeline", argv)
-
-
-if __name__ == "__main__":
-    main()
+    write_report(args.out, result, __name__, argv)

@@ -107,24 +107,3 @@ def test_parameter_counts_read_safetensors_headers(tmp_path):
     detector = sum(t.numel() for t in model.detector.state_dict().values())  # buffers are stored too
     assert registry.parameter_counts(fit) == {"detector": detector, "sdf": sdf, "total": sdf + detector}
     assert set(registry.safetensors_shapes(fit / "sdf.safetensors")) >= {"codes", "positions"}
-
-
-def test_every_python_m_command_a_manifest_or_model_card_cites_exists():
-    """The metrics commands of the releases name modules that exist (a renamed bench left them citing
-    `python -m pipeline.bench_detector`)."""
-    import importlib.util
-    import re
-
-    from zoo import registry
-
-    texts = [p.read_text() for p in registry.model_manifests_dir().glob("*.toml")]
-    texts += [p.read_text() for p in registry.pretrained_dir().glob("*/README.md")]
-    cited = {m for text in texts for m in re.findall(r"python -m ([\w.]+)", text)}
-    assert cited, "no command found: the pattern is out of date"
-    def exists(module: str) -> bool:
-        try:
-            return importlib.util.find_spec(module) is not None
-        except ModuleNotFoundError:  # its package does not exist
-            return False
-
-    assert not [m for m in sorted(cited) if not exists(m)]

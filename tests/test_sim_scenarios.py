@@ -37,7 +37,7 @@ def test_teeth_counted_on_the_industreal_gears(meshes):
 @pytest.mark.slow  # exact distances of 3 x 3 x 40,000 points to the large gear's mesh: 15-50 s
 @needs_meshes
 def test_gear_meshes_turn_in_mesh_with_backlash_at_their_assembly_pose(meshes):
-    from sdfzoo.benches.gear_clearance import clearance
+    from investigations.gear_clearance import clearance
 
     rows = clearance(offsets_deg=[-1.0, 0.0, 1.0], phases=3, samples=40_000)
     exact = {r["offset_deg"]: r["exact_m"] for r in rows}
@@ -69,9 +69,9 @@ def test_count_teeth_and_thread_pitch_on_synthetic_geometry():
 
 
 def test_screw_asymmetry_is_zero_only_for_the_threads_own_screw():
-    """benches/screw_symmetry.py against a field known in closed form: r - R - A cos(2 pi z / p - phi) is unchanged by
+    """investigations/screw_symmetry.py against a field known in closed form: r - R - A cos(2 pi z / p - phi) is unchanged by
     a right-hand screw of pitch p, and changed by a pure turn and by the left-hand screw."""
-    from sdfzoo.benches.screw_symmetry import advance_per_rad, asymmetry
+    from investigations.screw_symmetry import advance_per_rad, asymmetry
 
     pitch, amplitude = 0.002, 2e-4
 
@@ -171,7 +171,7 @@ def test_driven_gear_turns_the_other_at_the_teeth_ratio(meshes):
 
 
 def test_face_shapes_of_a_sliver_and_a_right_triangle():
-    from sdfzoo.benches.contact_faces import face_shapes
+    from investigations.contact_faces import face_shapes
 
     triangles = np.array([[[0, 0, 0], [3, 0, 0], [0, 4, 0]], [[0, 0, 0], [20, 0, 0], [10, 0.1, 0]]], dtype=np.float64)
     widths, longest = face_shapes(triangles)
@@ -180,9 +180,9 @@ def test_face_shapes_of_a_sliver_and_a_right_triangle():
 
 
 def test_faces_counted_within_the_margin_are_those_a_brute_force_search_finds():
-    """benches/contact_faces.py's count of the faces a step must answer, on the bottle resting in the holder (bundled
+    """investigations/contact_faces.py's count of the faces a step must answer, on the bottle resting in the holder (bundled
     data), against the minimum of the bottle's SDF over a barycentric grid of every face of the holder's mesh."""
-    from sdfzoo.benches.contact_faces import faces_within_margin, simulated
+    from investigations.contact_faces import faces_within_margin, simulated
     from zoo.geometry import barycentric_grid
 
     sim = simulated("bottle-holder", 45)  # landed at step 38
@@ -207,9 +207,9 @@ def test_faces_counted_within_the_margin_are_those_a_brute_force_search_finds():
 
 
 def test_the_timeline_windows_add_up_to_the_run():
-    """benches/sim_timeline.py on the bottle landing in the holder (bundled data): the windows cover every step once,
+    """investigations/sim_timeline.py on the bottle landing in the holder (bundled data): the windows cover every step once,
     their collider counters add up to the colliders' totals and their medians are the log's."""
-    from sdfzoo.benches.sim_timeline import COUNTERS, timeline
+    from investigations.sim_timeline import COUNTERS, timeline
 
     result = timeline("bottle-holder", seconds=0.05, window=10)  # 25 steps of the fall: two full windows and one of 5
     windows = result["windows"]
@@ -222,9 +222,9 @@ def test_the_timeline_windows_add_up_to_the_run():
 
 
 def test_query_sites_counts_each_query_with_the_function_that_asked():
-    """benches/query_sites.py: the queries made inside ``timed_queries`` are counted by kind and caller, points
+    """investigations/query_sites.py: the queries made inside ``timed_queries`` are counted by kind and caller, points
     included, and the NeuralSDF's own methods are restored afterwards."""
-    from sdfzoo.benches.query_sites import timed_queries
+    from investigations.query_sites import timed_queries
     from zoo.neural import NeuralShape
 
     shape = zoo.load("mugs").shape("hoi4d_mug_0001")

@@ -4,7 +4,7 @@ One forward pass maps a triangle (M, 3, 3) and the shape's code-cloud features a
 vertices (M, 3, C) to the barycentric coordinates (M, 3) of the point of minimum signed
 distance on it, replacing tens of Frank-Wolfe iterations that each query the NeuralSDF.
 
-Network (paper-notes, "The network"):
+Network (docs/paper-notes.md, "The network, (6)-(8)"):
 
 * g_phi, a shared MLP 3-16-1 with ReLU, scores each vertex from
   [|v_i - centroid| / perimeter, the two cosines cos(z_i, z_j), j != i]; a softmax over the

@@ -28,7 +28,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
 # unit-sphere normalisation, i.e. sigma 0.05 and 0.016 for radius 1) plus ~8% uniform points;
 # DCC-DIF (via DIF-Net) uses on-surface points plus uniform free space. Our shapes span 1, not 2,
 # so the bands are sigma 0.005 (the fine band that pins the zero level set) and 0.05 (the
-# shell the collision triangles live in: centroid SDF up to 0.1, see paper-notes), with
+# shell the collision triangles live in: centroid SDF up to 0.1, see docs/paper-notes.md), with
 # 20% uniform points so far field is learned too.
 DEFAULT_N_POINTS = 250_000
 DEFAULT_NEAR_SIGMAS = (0.005, 0.05)
