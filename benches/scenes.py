@@ -180,10 +180,11 @@ def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_c
 
     category = load_category(model)
     mesh_path = resolve_data_dir(None, category) / category.entry(shape).file
-    key = f"{model}-{shape}-{scene.name}-{spacing_cells}-winding"  # grids signed by the pseudonormal had no suffix
-    cache = cache_dir / f"{key}.pt"
+    # grids signed by the pseudonormal had no "-winding"; pickled VoxelSDFs were "<key>.pt", tensors are "<key>.grid.pt"
+    key = f"{model}-{shape}-{scene.name}-{spacing_cells}-winding"
+    cache = cache_dir / f"{key}.grid.pt"
     if cache.is_file():
-        return torch.load(cache, weights_only=False)
+        return VoxelSDF.from_state(torch.load(cache, weights_only=True))
     source = load_mesh(mesh_path)
     lo, hi = (np.asarray(b, dtype=np.float64) for b in source.bounds)
     size = float((hi - lo).max())
@@ -201,7 +202,7 @@ def standin_sdf(model: str, shape: str, scene: Scene, cache_dir: Path, spacing_c
     grid = VoxelSDF(ExactMeshSDF(source), resolution=shape_res, bounds=(r_lo, r_hi), padding=0.0, chunk=1 << 16)
     cache.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(".tmp")
-    torch.save(grid, tmp)
+    torch.save(grid.state(), tmp)
     os.replace(tmp, cache)
     return grid
 
@@ -487,7 +488,7 @@ def peak_memory_in_child(scene_path: Path, method: str, fw_iters: int, refine: i
     """Peak RSS (MB) of a fresh process: after loading the scene, and after one collide with ``method``."""
     cmd = [sys.executable, "-m", "sdfzoo.benches.scenes", "--child", str(scene_path), method, str(fw_iters), str(refine), standin_dir]
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parent.parent)
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env)  # this process's folder: relative paths read the same
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"}
     return json.loads(done.stdout.strip().splitlines()[-1])

@@ -209,7 +209,7 @@ def read_content(path: Path, bases: tuple[str, ...]):
     if path.suffix == ".json":
         return normalise(json.loads(path.read_text()), bases)
     if path.suffix == ".pt":
-        return normalise(torch.load(path, map_location="cpu", weights_only=False), bases)
+        return normalise(torch.load(path, map_location="cpu", weights_only=True), bases)
     if path.suffix == ".safetensors":
         from safetensors.torch import load_file
 

@@ -87,6 +87,28 @@ class VoxelSDF:
         self.bounds = (self.lo.float(), self.hi.float())
         self._copies: dict[torch.device, torch.Tensor] = {}
 
+    # -- on disk ---------------------------------------------------------------------------
+
+    def state(self) -> dict:
+        """The grid as tensors and numbers only: ``torch.save`` it, read it back with ``torch.load(path,
+        weights_only=True)`` (no pickled object) and :meth:`from_state`."""
+        return {"values": self.values, "lo": self.lo, "hi": self.hi, "padding": self.padding, "truncation": self.truncation}
+
+    @classmethod
+    def from_state(cls, state: dict) -> VoxelSDF:
+        """The VoxelSDF whose :meth:`state` is ``state``; no SDF is sampled again."""
+        values = torch.as_tensor(state["values"], dtype=torch.float32)
+        if values.ndim != 3 or min(values.shape) < 2:
+            raise InputError(f"a VoxelSDF state holds (nx, ny, nz) samples, each >= 2; got shape {tuple(values.shape)}")
+        grid = cls.__new__(cls)
+        grid.values, grid.shape = values, tuple(values.shape)
+        grid.lo, grid.hi = (torch.as_tensor(state[k], dtype=torch.float64) for k in ("lo", "hi"))
+        grid.spacing = (grid.hi - grid.lo) / (torch.tensor(grid.shape, dtype=torch.float64) - 1)
+        grid.padding, grid.truncation = float(state["padding"]), state["truncation"]
+        grid.bounds = (grid.lo.float(), grid.hi.float())
+        grid._copies = {}
+        return grid
+
     # -- the SDF protocol -------------------------------------------------------------------
 
     def __call__(self, points) -> torch.Tensor:
