@@ -405,3 +405,27 @@ def test_mujocos_renderer_draws_the_attached_body_and_its_contacts(tmp_path):
         gif, mp4 = with_contacts.write(tmp_path / "ball.gif", fps=10), with_contacts.write(tmp_path / "ball.mp4", fps=10)
     assert iio.imread(gif, index=None).shape[:3] == (2, 120, 160)
     assert mp4.stat().st_size > 0
+
+
+@pytest.mark.parametrize("half_length", [0.0, 0.06])
+def test_spheres_and_capsules_meet_an_sdf_in_closed_form_at_the_exact_depth(half_length):
+    """A zoo.Sphere body over a tilted capsule (or sphere) geom: one step's deepest contact lies at the exact signed
+    distance between the two (centre to segment, less both radii), with the exact normal."""
+    geom = "sphere" if half_length == 0 else "capsule"
+    size = "0.02" if half_length == 0 else f"0.02 {half_length}"
+    xml = _ball_on(f'<geom type="{geom}" size="{size}" pos="0.01 0 0" euler="0 70 0"/>', 0.068, timestep=0.001)  # penetrating: kept however still
+    model = mujoco.MjModel.from_xml_string(xml.replace("<option", '<option gravity="0 0 0"'))
+    data = mujoco.MjData(model)
+    world = zoo.sim.attach(model, {"ball": zoo.Sphere(radius=BALL)}, method="fw", margin=2e-3)
+    assert [p.kind for p in world.pairs] == ["segment"]
+    world.step(data)
+    mujoco.mj_forward(model, data)
+    centre, rotation = data.xpos[model.body("ball").id], data.geom_xmat[0].reshape(3, 3)
+    axis = rotation[:, 2]
+    t = np.clip((centre - data.geom_xpos[0]) @ axis, -half_length, half_length)
+    nearest = data.geom_xpos[0] + t * axis
+    exact = float(np.linalg.norm(centre - nearest)) - BALL - 0.02
+    deepest = int(np.argmin(world.contacts.depths.numpy()))
+    assert world.contacts.depths[deepest].item() == pytest.approx(exact, abs=2e-5 if half_length == 0 else 1e-4)
+    expected_normal = (nearest - centre) / np.linalg.norm(nearest - centre)  # from the SDF towards the capsule
+    assert np.allclose(world.contacts.normals[deepest].numpy(), expected_normal, atol=1e-2)

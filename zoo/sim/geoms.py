@@ -3,7 +3,8 @@
 :func:`partner_geoms` applies MuJoCo's own collision filter to an SDF body and every geom of the model:
 no geom of the body itself nor of a body welded to it, no geom of its parent or child (by weld, unless the
 model disables that filter), contype/conaffinity (the SDF body's own are :func:`zoo.sim.attach`'s
-``contype`` and ``conaffinity``), and the model's ``<exclude>`` pairs. :func:`geom_surface` gives a geom's
+``contype`` and ``conaffinity``), and the model's ``<exclude>`` pairs. :func:`geom_segment` gives a sphere or
+capsule as a segment and a radius (the SDF meets it in closed form); :func:`geom_surface` gives a geom's
 collision geometry in its own frame: a mesh from the model's compiled mesh data, a box as its 12 exact
 triangles, a sphere, capsule, cylinder or ellipsoid tessellated to within ``tolerance``, and a plane as
 None (an infinite plane: :class:`zoo.sim.world.World` lays a patch of it under the SDF at each step).
@@ -208,6 +209,20 @@ def _sphere(radius: float, scale: np.ndarray, tolerance: float) -> tuple[np.ndar
         level += 1
     mesh = trimesh.creation.icosphere(subdivisions=level, radius=radius)
     return np.asarray(mesh.vertices, dtype=np.float64) * scale, np.asarray(mesh.faces, dtype=np.int64)
+
+
+def geom_segment(model, geom: int) -> tuple[float, float] | None:
+    """(radius, half-length along the geom's z) of a sphere (half-length 0) or capsule geom; None for other types:
+    the points within a radius of a segment, which an SDF meets in closed form (no tessellation)."""
+    import mujoco
+
+    kind = int(model.geom_type[geom])
+    size = model.geom_size[geom]
+    if kind == mujoco.mjtGeom.mjGEOM_SPHERE:
+        return float(size[0]), 0.0
+    if kind == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        return float(size[0]), float(size[1])
+    return None
 
 
 def geom_pose(data, geom: int) -> np.ndarray:

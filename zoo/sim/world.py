@@ -16,12 +16,15 @@ contact clears the constraint rows). Two ways to run it, with identical trajecto
   ``mj_step`` and so get the contacts. RK4 runs this way too (its four stages each detect).
 
 Pairs: an SDF body meets a mesh geom through the model's compiled mesh, a box through its 12 triangles, a
-sphere, capsule, cylinder or ellipsoid through a tessellation within ``tolerance``, a plane through a patch
-of it laid under the SDF at each step (a plane is infinite), and another SDF body through that body's
+sphere or capsule in closed form (f along its axis segment, less its radius), a cylinder or ellipsoid
+through a tessellation within ``tolerance``, a plane through a patch of it laid under the SDF at each step
+(a plane is infinite), and another SDF body through that body's
 surface mesh (``surfaces`` names one, else it is extracted once from its SDF by marching cubes); of two SDF
 bodies, the one named first in ``bodies`` uses its SDF. Triangles larger than a quarter of the SDF are split
 once, at attach (``refine``). Fast impacts: a pair whose bodies could close more than the margin within a
-step is collided with a margin that covers it (speculative contacts).
+step is collided with a margin that covers it (speculative contacts). Before any query, a pair whose
+bounding balls (a ball and a half-space for a plane) are farther apart than the margin is passed over: a
+robot's many geoms far from the object cost a few microseconds each.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ from .geoms import (
     excluded_bodies,
     geom_parameters,
     geom_pose,
+    geom_segment,
     geom_surface,
     may_touch,
     mixed_parameters,
@@ -130,7 +134,10 @@ class Pair:
         body: the other body's id; geom: the geom its contacts name.
         params: the pair's mixed contact parameters.
         frame: "geom" (the surface is in ``geom``'s frame) or "body" (in ``body``'s: another SDF body's surface).
-        vertices, faces: (V, 3), (F, 3) the other side's surface in that frame as given; None for a plane.
+        kind: "mesh" (triangles), "plane" (an infinite plane, z = 0 of its frame, facing +z) or "segment" (a sphere
+            or capsule: the points within ``radius`` of the segment from -``half_length`` to +``half_length``
+            along z, answered in closed form).
+        vertices, faces: (V, 3), (F, 3) the other side's surface in that frame as given (a mesh); lo, hi: its box.
         refined: the :class:`RefinedMesh` the collider answers on, or None where the refinement happens near
             the SDF at each step (a large mesh) or not at all (a plane).
         collider: the pair's ``zoo.CoherentCollider`` on ``refined`` (None without it).
@@ -141,14 +148,33 @@ class Pair:
     geom: int
     params: ContactParameters
     frame: str
+    kind: str = "mesh"
     vertices: np.ndarray | None = None
     faces: np.ndarray | None = None
     refined: RefinedMesh | None = None
     collider: object = None
+    radius: float = 0.0
+    half_length: float = 0.0
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
 
     @property
     def is_plane(self) -> bool:
-        return self.vertices is None
+        return self.kind == "plane"
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius of a ball about the surface frame's ``centre`` that holds the surface (inf for a plane)."""
+        if self.kind == "plane":
+            return math.inf
+        if self.kind == "segment":
+            return self.half_length + self.radius
+        return float(np.linalg.norm(self.hi - self.lo)) / 2
+
+    @property
+    def centre(self) -> np.ndarray:
+        """The centre (3,) of the surface's box, in its frame."""
+        return np.zeros(3) if self.kind in ("plane", "segment") else (self.lo + self.hi) / 2
 
     def surface_pose(self, data) -> np.ndarray:
         """(4, 4) world-from-surface: the pose of the frame ``vertices`` and ``refined`` are in, at ``data``'s kinematics."""
@@ -278,6 +304,11 @@ class World:
             own = geom_parameters(model, sdf_body.geom)
             for geom in partner_geoms(model, sdf_body.body, sdf_body.types, sdf_body_ids, include):
                 params = mixed_parameters(model, own, geom_parameters(model, geom))
+                segment = geom_segment(model, geom)
+                if segment is not None:  # a sphere or a capsule: exact, no triangles
+                    pairs.append(Pair(sdf_body=sdf_body, body=int(model.geom_bodyid[geom]), geom=geom, params=params,
+                                      frame="geom", kind="segment", radius=segment[0], half_length=segment[1]))
+                    continue
                 surface = geom_surface(model, geom, self.tolerance)
                 pairs.append(self._pair(sdf_body, int(model.geom_bodyid[geom]), geom, params, "geom", surface))
             for other in sdf_bodies[index + 1:]:  # the earlier-named body's SDF meets the later one's surface
@@ -291,8 +322,10 @@ class World:
     def _pair(self, sdf_body: SdfBody, body: int, geom: int, params: ContactParameters, frame: str, surface) -> Pair:
         pair = Pair(sdf_body=sdf_body, body=body, geom=geom, params=params, frame=frame)
         if surface is None:
+            pair.kind = "plane"
             return pair
         pair.vertices, pair.faces = surface
+        pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
         refined = refine_to_size(pair.vertices, pair.faces, sdf_body.max_edge if self.refine else math.inf, PREREFINE_MAX_FACES)
         if refined is not None:
             vertices, faces, origin = refined
@@ -408,13 +441,22 @@ class World:
         rows, collected, geoms = [], [], []
         stats = StepStats(margin=self.margin)
         deepest = 0.0
+        velocities: dict[int, np.ndarray] = {}
+        poses: dict[int, np.ndarray] = {}
         for pair in self.pairs:
+            for body in (pair.sdf_body.body, pair.body):
+                if body not in velocities:
+                    velocities[body] = body_velocity(self.model, data, body)
+                    poses[body] = body_pose(data, body)
             margin = max(self.margin, pair.params.margin)
-            closing = self._closing_distance(pair, data)
+            closing = self._closing_distance(pair, data, velocities)
             if closing > margin:  # would cross the margin in one step: see it coming
-                margin, stats.speculative = SPECULATIVE_FACTOR * closing, True
+                margin = SPECULATIVE_FACTOR * closing
+            if self._apart(pair, poses[pair.sdf_body.body], pair.surface_pose(data), margin):
+                continue
             stats.margin = max(stats.margin, margin)
-            found = self._collide(pair, data, margin)
+            stats.speculative |= closing > max(self.margin, pair.params.margin)
+            found = self._collide(pair, data, margin, velocities)
             if found is None:
                 continue
             contacts, keep, arrays = found
@@ -429,28 +471,41 @@ class World:
         stats.max_penetration = deepest
         return rows, collected, geoms, stats
 
-    def _closing_distance(self, pair: Pair, data) -> float:
+    @staticmethod
+    def _apart(pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float) -> bool:
+        """Whether the balls (or, for a plane, the ball and the half-space) around the two sides are more than
+        ``margin`` apart: no contact, nothing to query."""
+        sdf_body = pair.sdf_body
+        centre = t_sdf[:3, :3] @ ((sdf_body.lo + sdf_body.hi) / 2) + t_sdf[:3, 3]
+        radius = float(np.linalg.norm(sdf_body.hi - sdf_body.lo)) / 2
+        if pair.kind == "plane":
+            return float(t_other[:3, 2] @ (centre - t_other[:3, 3])) - radius > margin
+        other = t_other[:3, :3] @ pair.centre + t_other[:3, 3]
+        return float(np.linalg.norm(centre - other)) - radius - pair.bounding_radius > margin
+
+    def _closing_distance(self, pair: Pair, data, velocities: dict) -> float:
         """Upper bound (m) on how much closer the pair's surfaces can get in one step.
 
         A contact lies within ``reach`` of the SDF body's origin, so within ``reach`` + |x_a - x_b| of the
         other body's: each body's rotation moves it by at most its angular speed times that lever.
         """
-        a = body_velocity(self.model, data, pair.sdf_body.body)
-        b = body_velocity(self.model, data, pair.body)
+        a, b = velocities[pair.sdf_body.body], velocities[pair.body]
         reach = pair.sdf_body.reach
         lever = reach + float(np.linalg.norm(data.xpos[pair.sdf_body.body] - data.xpos[pair.body]))
         linear = float(np.linalg.norm(a[:3] - b[:3]))
         return (linear + reach * float(np.linalg.norm(a[3:])) + lever * float(np.linalg.norm(b[3:]))) * self.model.opt.timestep
 
-    def _collide(self, pair: Pair, data, margin: float):
+    def _collide(self, pair: Pair, data, margin: float, velocities: dict):
         """(zoo.Contacts in the world frame, kept indices, their :func:`as_numpy` arrays) of one pair, or None."""
         sdf_body = pair.sdf_body
         t_sdf, t_other = body_pose(data, sdf_body.body), pair.surface_pose(data)
-        if pair.is_plane:
+        if pair.kind == "plane":
             contacts, faces_world = self._collide_plane(pair, t_sdf, t_other, margin)
+        elif pair.kind == "segment":
+            contacts, faces_world = self._collide_segment(pair, t_sdf, t_other, margin)
         else:
             world_lo, world_hi = _world_box(t_sdf, sdf_body.lo - margin, sdf_body.hi + margin)
-            mesh_lo, mesh_hi = _world_box(t_other, pair.vertices.min(axis=0), pair.vertices.max(axis=0))
+            mesh_lo, mesh_hi = _world_box(t_other, pair.lo, pair.hi)
             if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
                 return None
             if pair.collider is None:
@@ -464,8 +519,8 @@ class World:
         points, depths, normals = as_numpy(contacts)
         # the contacts MuJoCo can use, before the reduction picks among them: facing their faces, and touching or
         # closing within the step (a separated one beyond that would only brake the bodies at a distance)
-        motion_a = (data.xpos[sdf_body.body].copy(), body_velocity(self.model, data, sdf_body.body))
-        motion_b = (data.xpos[pair.body].copy(), body_velocity(self.model, data, pair.body))
+        motion_a = (data.xpos[sdf_body.body].copy(), velocities[sdf_body.body])
+        motion_b = (data.xpos[pair.body].copy(), velocities[pair.body])
         usable = facing_faces(normals, faces_world, depths) & closing_in_time(
             points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
         keep = np.nonzero(usable)[0]
@@ -493,13 +548,42 @@ class World:
         corners = _corners(sdf_body.lo, sdf_body.hi) @ plane_from_sdf[:3, :3].T + plane_from_sdf[:3, 3]
         if corners[:, 2].min() > margin:
             return None, None
-        cell = sdf_body.max_edge if self.refine else float(np.ptp(corners[:, :2], axis=0).max()) + 2 * margin
+        # cells whose diagonal is within the refinement's edge, so that zoo.collide answers them as they are
+        cell = sdf_body.max_edge / math.sqrt(2) if self.refine else float(np.ptp(corners[:, :2], axis=0).max()) + 2 * margin
         lo = np.floor((corners[:, :2].min(axis=0) - margin) / cell).astype(np.int64)
         hi = np.ceil((corners[:, :2].max(axis=0) + margin) / cell).astype(np.int64)
         vertices, faces = _grid(lo, hi, cell)
         sdf_from_plane = invert_pose(torch.from_numpy(plane_from_sdf)).numpy()
         local = vertices @ sdf_from_plane[:3, :3].T + sdf_from_plane[:3, 3]
         return self._collide_in_sdf_frame(pair, local, faces, np.arange(len(faces)), t_sdf, margin)
+
+    def _collide_segment(self, pair: Pair, t_sdf: np.ndarray, t_geom: np.ndarray, margin: float):
+        """A sphere's or capsule's contacts in closed form: its axis segment's point of least f (a sphere: its centre;
+        a capsule: the lower end and the segment's minimum, see :func:`segment_minima`), each at depth f - radius
+        along the SDF's normal there; (contacts in the world frame, their normals as the faces' normals)."""
+        sdf_body = pair.sdf_body
+        sdf_from_geom = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_geom
+        ends = np.array([[0.0, 0.0, -pair.half_length], [0.0, 0.0, pair.half_length]])
+        a, b = ends @ sdf_from_geom[:3, :3].T + sdf_from_geom[:3, 3]
+        dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
+        centres = segment_minima(sdf_body.sdf, a, b, dtype)  # (C, 3), SDF frame
+        with torch.no_grad():
+            values, grads = sdf_body.sdf.value_and_grad(torch.as_tensor(centres, dtype=dtype))
+        values, grads = values.double().cpu().numpy().reshape(-1), grads.double().cpu().numpy().reshape(-1, 3)
+        length = np.linalg.norm(grads, axis=1, keepdims=True)
+        normals = grads / np.where(length > 0, length, 1.0)
+        depths = values - pair.radius
+        keep = depths <= margin
+        if not keep.any():
+            return None, None
+        points = centres[keep] - pair.radius * normals[keep]  # the sphere's or capsule's point deepest in the SDF
+        rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
+        normals_world = normals[keep] @ rotation.T
+        k = int(keep.sum())
+        contacts = zoo.Contacts(points=torch.as_tensor(points @ rotation.T + origin), depths=torch.as_tensor(depths[keep]),
+                                normals=torch.as_tensor(normals_world), triangles=torch.full((k,), -1, dtype=torch.long),
+                                bary=torch.zeros(k, 3, dtype=torch.float64), n_triangles=0, n_candidates=k, method="closed-form")
+        return contacts, normals_world
 
     def _collide_in_sdf_frame(self, pair: Pair, local: np.ndarray, faces: np.ndarray, origin: np.ndarray,
                               t_sdf: np.ndarray, margin: float):
@@ -516,6 +600,36 @@ class World:
 
 
 # -- helpers ---------------------------------------------------------------------------------------
+
+
+SEGMENT_SAMPLES = 9  # points along a capsule's axis where f is read before the search narrows around the lowest
+SEGMENT_REFINE = 8  # golden-section steps around it: the bracket shrinks to 0.618^8 (2%) of two samples' spacing
+
+
+def segment_minima(sdf, a: np.ndarray, b: np.ndarray, dtype) -> np.ndarray:
+    """Points (C, 3) on the segment from ``a`` to ``b`` (3,) where ``sdf`` is least: the segment's minimum by
+    sampling then golden-section search around the lowest sample, and, for a segment of some length, its two
+    ends (a capsule lying on a flat face touches along its length: its ends hold it level). One point where
+    ``a`` equals ``b`` (a sphere)."""
+    axis = b - a
+    if float(np.linalg.norm(axis)) == 0.0:
+        return a[None].copy()
+
+    def f(t: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return torch.as_tensor(sdf(torch.as_tensor(a + t[:, None] * axis, dtype=dtype))).double().cpu().numpy().reshape(-1)
+
+    t = np.linspace(0.0, 1.0, SEGMENT_SAMPLES)
+    values = f(t)
+    best = int(np.argmin(values))
+    lo, hi = t[max(best - 1, 0)], t[min(best + 1, len(t) - 1)]
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    for _ in range(SEGMENT_REFINE):  # both inner points per step in one query: fewer calls than the classic form
+        inner = np.array([hi - ratio * (hi - lo), lo + ratio * (hi - lo)])
+        left, right = f(inner)
+        lo, hi = (lo, inner[1]) if left <= right else (inner[0], hi)
+    middle = 0.5 * (lo + hi)
+    return a + np.array([0.0, middle, 1.0])[:, None] * axis
 
 
 def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
