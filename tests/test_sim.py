@@ -40,7 +40,7 @@ def test_resting_matches_native(name, shape, ground, xy):
     record = sim_check.rest_case(name, shape, mesh, xy=xy)
     assert abs(record["penetration_error"]) <= 0.25, record
     assert abs(record["normal_force_error"]) <= 0.01, record
-    assert record["ok"], record
+    assert record["zoo_contacts"] > 0 and not record["warnings"], record
 
 
 def test_sliding_box_matches_native():
@@ -173,12 +173,46 @@ def _longest_edge_bisection(v: np.ndarray, f: np.ndarray, max_edge: float) -> in
 # -- stiff and extreme cases (as `zoo stress --sim`) -------------------------------------------
 
 
-@pytest.mark.parametrize("prefix", ["stiff", "impact crossing", "impact far", "deep", "mass ratio 1:1000"])
+def _deep_penetration_warned(observed: dict) -> bool:
+    return any("deep penetration" in w for w in observed["warnings"])
+
+
+def _stiff(o: dict) -> None:
+    assert 0 < o["resting_penetration_mm"] < 1.0 and o["final_speed"] < 1e-2 and o["n_warnings"] == 0
+
+
+def _impact(o: dict) -> None:
+    radius_mm = 1e3 * sim_check.RADIUS
+    assert o["steps_with_widened_margin"] > 0  # the closing distance was seen: the margin widened
+    assert o["lowest_centre_mm"] > 0 and o["final_height_mm"] > radius_mm - 1.0  # never through the plane; rests on it
+
+
+def _impact_far(o: dict) -> None:
+    assert not o["passed_through"] or _deep_penetration_warned(o)  # stopped, or never silently
+
+
+def _deep(o: dict) -> None:
+    assert o["max_speed"] < 2.0 and o["final_penetration_mm"] < 1.0
+    assert o["jump_mm"] < max(2 * o["native_jump_mm"], 10.0)  # no higher than twice native MuJoCo's ball from that depth
+    assert _deep_penetration_warned(o)
+
+
+def _light_on_heavy(o: dict) -> None:
+    assert abs(o["top_sink_mm"]) < 1.0 and o["top_final_speed"] < 1e-2 and o["n_warnings"] == 0
+
+
+SIM_STRESS_CHECKS = {"stiff": _stiff, "impact crossing": _impact, "impact far": _impact_far, "deep": _deep,
+                     "mass ratio 1:1000": _light_on_heavy}
+
+
+@pytest.mark.parametrize("prefix", list(SIM_STRESS_CHECKS))
 def test_stress_case(prefix):
+    """The `zoo stress --sim` case as the command runs it, judged here on what it observed."""
     name, fn = next((n, f) for n, f in stress_sim.CASES if n.startswith(prefix))
     expected, observed, ok = fn({})
-    assert ok, (name, expected, observed)
-    assert observed["finite"]
+    assert observed["finite"], (name, observed)
+    SIM_STRESS_CHECKS[prefix](observed)
+    assert ok  # the command's summary agrees
 
 
 # -- the API ----------------------------------------------------------------------------------
@@ -230,7 +264,7 @@ def test_log_records_every_step():
     sim.step(20)
     assert len(sim.log) == 20 and sim.log[-1].contacts >= 1
     assert isinstance(sim.contacts, zoo.Contacts) and len(sim.contacts) >= 1
-    assert all(r.collide_s >= 0 and r.step_s >= r.collide_s for r in sim.log)
+    assert all(r.step_s >= r.collide_s > 0 for r in sim.log)  # every step timed its detection, within the step
 
 
 # -- scenes and `zoo simulate` ------------------------------------------------------------------
@@ -315,3 +349,10 @@ def test_a_separated_contact_exerts_no_force_until_the_step_can_close_it():
     sim.run(0.1)
     assert abs(sim.velocity("ball")[2]) < 0.02
     assert sim.pose("ball")[2, 3] > 0.02 - 5e-4
+
+
+def test_pose_and_velocity_build_the_model_on_first_use():
+    sim = zoo.sim.Simulation(method="fw")
+    sim.add_body("ball", sdf=zoo.Sphere(radius=0.05), mass=1.0, pose=np.array(
+        [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1]], dtype=float))
+    assert np.allclose(sim.pose("ball")[:3, 3], [0.1, 0.0, 0.3]) and np.allclose(sim.velocity("ball"), 0.0)

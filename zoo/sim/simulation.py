@@ -306,13 +306,15 @@ class Simulation:
         """(4, 4) world-from-body of body ``name`` at the current time."""
         from .geoms import body_pose
 
-        return body_pose(self.data, self._body_id(name))
+        body = self._body_id(name)  # builds the model first where needed
+        return body_pose(self.data, body)
 
     def velocity(self, name: str) -> np.ndarray:
         """(6,) linear velocity of the body's origin and angular velocity, world frame."""
         from .geoms import body_velocity
 
-        return body_velocity(self.model, self.data, self._body_id(name))
+        body = self._body_id(name)
+        return body_velocity(self.model, self.data, body)
 
     def normal_force(self, name: str) -> float:
         """Total normal force (N) of the last step's contacts on body ``name``."""
