@@ -58,17 +58,18 @@ def gaps_to_reference(sdf, tris, bary) -> torch.Tensor:
 
 
 def gap_summary(sdf, tris, answers: dict) -> dict:
+    """Per solver: its gaps to the reference minimum (median, p90, max) and whether its answers are on the simplex."""
     out = {}
     for k, b in answers.items():
         g = gaps_to_reference(sdf, tris, b).double()
-        out[k] = {"p50": float(g.median()), "p90": float(g.quantile(0.9)), "max": float(g.max())}
+        out[k] = {"p50": float(g.median()), "p90": float(g.quantile(0.9)), "max": float(g.max()), "on_simplex": on_simplex(b)}
     return out
 
 
 def baseline_gaps(sdf, tris) -> tuple[dict, bool]:
     """FW-10 and PGD on ``tris``: their gap summaries, and whether every answer is on the simplex."""
-    answers = solver_answers(sdf, tris)
-    return gap_summary(sdf, tris, answers), all(on_simplex(b) for b in answers.values())
+    gaps = gap_summary(sdf, tris, solver_answers(sdf, tris))
+    return gaps, all(g["on_simplex"] for g in gaps.values())
 
 
 def solver_answers(sdf, tris, detector_shape=None) -> dict[str, torch.Tensor]:
@@ -104,8 +105,10 @@ def _degenerate(ctx):
         torch.stack([p, p, p + torch.tensor([0, 0.05, 0])]),             # two equal vertices
     ])
     answers = solver_answers(sdf, tris, ctx.get("shape_sdf"))
-    ok = all(on_simplex(b) for b in answers.values()) and gap_to_reference(sdf, tris, answers["fw-10"]) < 1e-3
-    return "finite barycentrics on the simplex, near the reference minimum", {k: "on simplex" if on_simplex(b) else "OFF simplex" for k, b in answers.items()}, ok
+    gap = gap_to_reference(sdf, tris, answers["fw-10"])
+    ok = all(on_simplex(b) for b in answers.values()) and gap < 1e-3
+    observed = {k: "on simplex" if on_simplex(b) else "OFF simplex" for k, b in answers.items()} | {"fw-10 gap to the reference": gap}
+    return "finite barycentrics on the simplex, near the reference minimum", observed, ok
 
 
 @case("slivers")
@@ -138,8 +141,8 @@ def _far(ctx):
     sdf = ctx["sdf"]
     tris = triangles_around(sdf, 128, 0.05, 1e3)
     c = zoo.collide(sdf, (tris.reshape(-1, 3), torch.arange(len(tris) * 3).reshape(-1, 3)), method="fw")
-    answers = solver_answers(sdf, tris)
-    return "no contacts, finite answers", {"contacts": len(c), "candidates": c.n_candidates}, len(c) == 0 and all(on_simplex(b) for b in answers.values())
+    simplex = all(on_simplex(b) for b in solver_answers(sdf, tris).values())
+    return "no contacts, finite answers", {"contacts": len(c), "candidates": c.n_candidates, "on_simplex": simplex}, len(c) == 0 and simplex
 
 
 @case("penetrating triangles")
@@ -222,7 +225,8 @@ def _units(ctx):
     c_mm = zoo.collide(sdf_mm, (v * 1000.0, f), margin=1.0)
     same = len(c_m) == len(c_mm) and bool(torch.equal(c_m.triangles, c_mm.triangles))
     err = float((c_m.depths * 1000 - c_mm.depths).abs().max()) if same and len(c_m) else float("nan")
-    return "same contact triangles, depths scale by 1000", {"contacts_m": len(c_m), "contacts_mm": len(c_mm), "depth_diff_mm": err}, same and err < 1e-2
+    observed = {"contacts_m": len(c_m), "contacts_mm": len(c_mm), "same_triangles": same, "depth_diff_mm": err}
+    return "same contact triangles, depths scale by 1000", observed, same and err < 1e-2
 
 
 @case("one million points")
@@ -232,8 +236,9 @@ def _million(ctx):
     t0 = time.perf_counter()
     d, g = sdf.value_and_grad(pts)
     dt = time.perf_counter() - t0
-    ok = d.shape == (1_000_000,) and bool(torch.isfinite(d).all() and torch.isfinite(g).all())
-    return "finite values and gradients, memory bounded", {"seconds": dt, "sdf": type(sdf).__name__}, ok
+    finite = bool(torch.isfinite(d).all() and torch.isfinite(g).all())
+    ok = d.shape == (1_000_000,) and finite
+    return "finite values and gradients, memory bounded", {"seconds": dt, "sdf": type(sdf).__name__, "values": d.numel(), "finite": finite}, ok
 
 
 @case("queries at code positions (model)", needs_model=True)
@@ -244,7 +249,7 @@ def _code_positions(ctx):
     norm = shape.normalised
     d, g = norm.value_and_grad(norm.positions.detach().reshape(-1, 3).float())
     ok = bool(torch.isfinite(d).all() and torch.isfinite(g).all())
-    return "finite value and gradient exactly at every code position (inverse-distance weights)", {"points": int(d.numel())}, ok
+    return "finite value and gradient exactly at every code position (inverse-distance weights)", {"points": int(d.numel()), "finite": ok}, ok
 
 
 @case("softmax saturation (model)", needs_model=True)
@@ -399,7 +404,8 @@ def _detector_extremes(sdf) -> tuple[dict, bool]:
             held = all(after <= bound * (1 + 1e-4) for before, bound, after in clip.calls if math.isfinite(before) and before > bound)
             clipped += sum(before > bound for before, bound, _ in clip.calls)
             out[f"{name} / {cname}"] = {"losses": history["loss"], "max_grad_norm": max((c[0] for c in clip.calls), default=0.0),
-                                        "clipped_steps": sum(b > m for b, m, _ in clip.calls), "finite": finite, "clip_held": held}
+                                        "clipped_steps": sum(b > m for b, m, _ in clip.calls), "finite": finite, "clip_held": held,
+                                        "steps": config.steps, "clip_calls": len(clip.calls)}
             ok &= finite and held and len(clip.calls) == config.steps
     out["steps clipped in all"] = clipped
     return out, ok

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import zoo
-from sdfzoo.benches.stress import CASES, run_stress
+from sdfzoo.benches.stress import run_stress
 from zoo import parts
 from zoo.errors import DataError, InputError
 from zoo.scenes import load_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
@@ -82,20 +82,6 @@ def test_procedural_parts_respect_max_edge():
         mesh = make(max_edge=0.02)
         assert mesh.edges_unique_length.max() <= 0.02 + 1e-9
         assert len(mesh.faces) > 0
-
-
-def test_stress_malformed_inputs_all_raise_typed_errors(tmp_path):
-    malformed = dict(CASES)["malformed input"]
-    expected, observed, ok = malformed({"sdf": zoo.Sphere(0.3)})
-    assert ok, observed
-    # checked here too, not only by the harness's own verdict: each case raised a ZooError subclass
-    # (named first in its line) with a message beyond the class name
-    error_names = {name for name in dir(zoo.errors) if isinstance(getattr(zoo.errors, name), type)
-                   and issubclass(getattr(zoo.errors, name), zoo.errors.ZooError)}
-    assert len(observed) >= 10
-    for case, line in observed.items():
-        name, _, message = line.partition(": ")
-        assert name in error_names and len(message) > 20, (case, line)
 
 
 def test_stress_report_is_written(tmp_path, monkeypatch):

@@ -4,6 +4,7 @@ fit_codes (API and CLI)."""
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -25,18 +26,148 @@ def stress_contexts():
     return {"plain": stress_context(), "model": with_model}
 
 
+# What each case must show, judged here on what it observed (the case's own "ok" is the command's summary).
+
+
+def _solvers_on_simplex(observed: dict) -> None:
+    assert all(g["on_simplex"] for g in observed.values())
+
+
+def _median_gaps_below(bound: float):
+    def check(observed: dict) -> None:
+        _solvers_on_simplex(observed)
+        assert all(g["p50"] < bound for g in observed.values())
+
+    return check
+
+
+def _degenerate(observed: dict) -> None:
+    gap = observed.pop("fw-10 gap to the reference")
+    assert set(observed) >= {"fw-10", "pgd"} and set(observed.values()) == {"on simplex"}
+    assert gap < 1e-3
+
+
+def _tiny(observed: dict) -> None:
+    _solvers_on_simplex(observed)
+    assert all(g["max"] < 1e-5 for g in observed.values())
+
+
+def _far(observed: dict) -> None:
+    assert observed["contacts"] == 0 and observed["candidates"] == 0 and observed["on_simplex"]
+
+
+def _penetrating(observed: dict) -> None:
+    _median_gaps_below(1e-3)(observed["gaps"])
+    assert observed["deepest"] < 0
+
+
+def _tangent(observed: dict) -> None:
+    gaps = {int(k): v for k, v in observed.items()}
+    assert all(math.isfinite(v) and v >= 0 for v in gaps.values())
+    assert gaps[200] < gaps[10]
+
+
+def _zero(observed: dict) -> None:
+    assert observed.pop("contacts") == 0
+    assert set(observed) >= {"fw-10", "pgd"} and all(shape == [0, 3] for shape in observed.values())
+
+
+def _medial(observed: dict) -> None:
+    assert len(observed) == 3 and all(r["grad_finite"] and math.isfinite(r["value"]) for r in observed.values())
+
+
+def _precision(observed: dict) -> None:
+    assert observed["dtype"] == "torch.float64" and observed["max_value_diff"] < 1e-4
+
+
+def _units(observed: dict) -> None:
+    assert observed["contacts_m"] == observed["contacts_mm"] > 0 and observed["same_triangles"]
+    assert observed["depth_diff_mm"] < 1e-2
+
+
+def _million(observed: dict) -> None:
+    assert observed["values"] == 1_000_000 and observed["finite"]
+
+
+def _code_positions(observed: dict) -> None:
+    assert observed["points"] > 0 and observed["finite"]
+
+
+def _saturation(observed: dict) -> None:
+    assert len(observed) == 3 and set(observed.values()) == {"on simplex"}
+
+
+def _amortized_extremes(observed: dict) -> None:
+    assert set(observed) == {"huge", "penetrating"} and all(v["on_simplex"] for v in observed.values())
+    assert observed["penetrating"]["p50"] < 1e-2  # normalised units: the detector's answer is near the global minimum
+
+
+def _extreme_training(observed: dict) -> None:
+    fit, det = observed["fit-sdf"], observed["train-detector"]
+    assert all(v["finite"] for k, v in fit.items() if not k.startswith("refused"))
+    refused = [v for k, v in fit.items() if k.startswith("refused")]
+    assert len(refused) == 3 and all(v.startswith("InputError") for v in refused), refused
+    runs = [v for v in det.values() if isinstance(v, dict)]
+    assert len(runs) == 16 and all(v["finite"] and v["clip_held"] and v["clip_calls"] == v["steps"] for v in runs)
+    # the paper's loss on huge triangles has gradient norms far over grad_clip: clipping engaged
+    assert det["steps clipped in all"] > 0
+
+
+def _malformed(observed: dict) -> None:
+    from sdfzoo.benches.stress import BAD_INPUTS
+
+    error_names = {cls.__name__ for cls in _subclasses(ZooError)}
+    assert set(observed) == {name for name, _ in BAD_INPUTS}
+    for case, line in observed.items():
+        name, _, message = line.partition(": ")
+        assert name in error_names and len(message) > 20, (case, line)
+
+
+def _subclasses(cls):
+    return {cls} | {s for sub in cls.__subclasses__() for s in _subclasses(sub)}
+
+
+CHECKS = {
+    "degenerate triangles": _degenerate,
+    "slivers": _median_gaps_below(1e-4),
+    "tiny triangles": _tiny,
+    "huge triangles": _solvers_on_simplex,  # the baselines may stop far from the minimum on triangles 10x the object
+    "far-away triangles": _far,
+    "penetrating triangles": _penetrating,
+    "near-tangent triangles (FW zig-zag)": _tangent,
+    "zero triangles": _zero,
+    "high curvature (thin torus)": _solvers_on_simplex,
+    "zero gradient (medial axis)": _medial,
+    "float32 against float64": _precision,
+    "millimetres against metres": _units,
+    "one million points": _million,
+    "queries at code positions (model)": _code_positions,
+    "softmax saturation (model)": _saturation,
+    "amortized on huge and penetrating triangles (model)": _amortized_extremes,
+    "extreme training batches": _extreme_training,
+    "malformed input": _malformed,
+}
+
+
+def test_every_stress_case_has_a_check_here():
+    assert [name for name, _ in CASES] == list(CHECKS)
+
+
 @pytest.mark.parametrize("name", [pytest.param(name, marks=[pytest.mark.slow] if name in SLOW_CASES else [])
                                   for name, _ in CASES])
 def test_stress_case(name, stress_contexts):
     """Each case of the list `zoo stress` runs, as it runs it: the model cases on the shipped mugs model (as
     `--model mugs`), the others on the analytic torus (the default; with a NeuralSDF "one million points"
-    alone takes minutes)."""
+    alone takes minutes). What it observed is checked here; its own verdict must agree."""
     ctx = stress_contexts["model"] if name in MODEL_CASES else stress_contexts["plain"]
     if ctx is None:
         pytest.skip(f"needs the {STRESS_MODEL!r} model packaged (zoo.load({STRESS_MODEL!r}) failed)")
     record = run_case(name, dict(CASES)[name], ctx)
-    assert record["ok"], json.dumps(record, indent=1)[:4000]
-    assert "skipped" not in json.dumps(record["observed"])  # a model case that found no model did not run
+    observed = record["observed"]
+    assert isinstance(observed, dict), observed  # a case that raised records its traceback as a string
+    assert "skipped" not in json.dumps(observed)  # a model case that found no model did not run
+    CHECKS[name](json.loads(json.dumps(observed)))  # a copy: the checks may take it apart
+    assert record["ok"]  # the command's summary agrees
 
 
 def test_stress_reports_extreme_training_batches_ok(tmp_path, monkeypatch):
@@ -45,15 +176,7 @@ def test_stress_reports_extreme_training_batches_ok(tmp_path, monkeypatch):
     monkeypatch.setattr(stress, "CASES", [c for c in CASES if c[0] == "extreme training batches"])
     report = run_stress(tmp_path / "s.json")
     assert (report["passed"], report["failed"]) == (1, 0), json.dumps(report["cases"], indent=1)[:4000]
-    observed = json.loads((tmp_path / "s.json").read_text())["cases"][0]["observed"]
-    fit, det = observed["fit-sdf"], observed["train-detector"]
-    assert all(v["finite"] for k, v in fit.items() if not k.startswith("refused"))
-    refused = [v for k, v in fit.items() if k.startswith("refused")]
-    assert len(refused) == 3 and all(v.startswith("InputError") for v in refused), refused
-    runs = [v for v in det.values() if isinstance(v, dict)]
-    assert runs and all(v["finite"] and v["clip_held"] for v in runs)
-    # the paper's loss on huge triangles has gradient norms far over grad_clip: clipping engaged
-    assert det["steps clipped in all"] > 0
+    _extreme_training(json.loads((tmp_path / "s.json").read_text())["cases"][0]["observed"])  # as written to the file
 
 
 # --------------------------------------------------------------------------- malformed meshes for fit_codes
