@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from zoo.files import atomic_write_text
+from zoo.resources import bundled
 
-ROOT = Path(__file__).resolve().parent.parent
 SCENES = {  # scenario -> scene file; the scenario's control (a torque on the nut) comes from benches.sim_scenarios
     "mug-hanging": "sim-mug-hanging.toml",
     "bottle-holder": "sim-bottle-holder.toml",
@@ -72,7 +72,7 @@ def simulate(scenario: str, method: str, seconds: float) -> dict:
     import zoo.sim
     from sdfzoo.benches.sim_scenarios import SCENARIOS
 
-    sim = zoo.sim.load_scene(ROOT / "scenes" / SCENES[scenario], **METHODS[method])
+    sim = zoo.sim.load_scene(bundled("scenes") / SCENES[scenario], **METHODS[method])
     sim.build()
     control = SCENARIOS[scenario].control if scenario in SCENARIOS else None
     extra = (SCENARIOS[scenario].prepare(sim) or {}) if control is not None else {}
@@ -130,7 +130,7 @@ def reference(kind: str, scenario: str, seconds: float, dt: float = 0.002) -> di
 def run_isolated(args: list[str], timeout: float) -> dict:
     """One run in its own process (its own peak memory, no state shared): the child's JSON plus ``peak_memory_mb``."""
     command = [sys.executable, "-m", "sdfzoo.benches.sim_bench", *args]
-    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout, env={**os.environ})
+    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, env={**os.environ})
     if done.returncode != 0:
         return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}"}
     return json.loads(done.stdout.strip().splitlines()[-1])

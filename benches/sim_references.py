@@ -7,7 +7,7 @@
   ours, chosen so that the pitch is ours, 2 mm) with every dimensional quantity scaled to match
   (gravity x k, torques x k^2, solimp's width x k, time and mass unchanged), and reported in our units.
 - ``coacd_native`` (all four): what most users do today: each body's mesh cut into convex pieces by
-  CoACD (cached under ``out/cache/coacd``), MuJoCo's native convex-convex collision, the poses,
+  CoACD (cached under ``out/cache/coacd`` in the working folder), MuJoCo's native convex-convex collision, the poses,
   masses, joints, dt, friction and solref of our scene file.
 
 Each returns the metrics of :func:`step_metrics` plus the scenario's outcome (the same checks as
@@ -46,11 +46,11 @@ from sdfzoo.benches.sim_scenarios import (
     thread_pitch,
 )
 from zoo.files import atomic_path, sha256_file
+from zoo.resources import bundled
 from zoo.sim.model import quaternion
 
-ROOT = Path(__file__).resolve().parent.parent
-SCENES = ROOT / "scenes"
-CACHE = ROOT / "out" / "cache" / "coacd"
+SCENES = bundled("scenes")  # the clone's scenes/, or the wheel's copy
+CACHE = Path("out") / "cache" / "coacd"  # under the working folder, beside the bench's out/: never inside the package
 SCENARIOS = {"bolt-nut": "sim-bolt-nut.toml", "gear-gear": "sim-gear-gear.toml",
              "mug-rack": "sim-mug-rack.toml", "bottle-holder": "sim-bottle-holder.toml"}
 PLUGIN_SCENARIOS = ("bolt-nut", "gear-gear")

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from zoo.files import atomic_write_text
+from zoo.resources import bundled
 
-ROOT = Path(__file__).resolve().parent.parent
-SCENES = ROOT / "scenes"
+SCENES = bundled("scenes")  # the clone's scenes/, or the wheel's copy
 TOLERANCE = 0.05  # gear ratio and advance per turn: within 5% of the teeth ratio and the pitch
 
 # scenes/mug-rack.toml's comment: the NDF rack's peg rises at 50 degrees from PEG_ROOT, radius 9.5 mm
@@ -130,7 +130,7 @@ def run(name: str, seconds: float | None = None, out: Path | None = None) -> dic
         trace.append({"time": sim.time, "contacts": step.contacts, "penetration_mm": 1e3 * step.max_penetration, **scenario.record(sim)})
     wall = time.perf_counter() - started
     result = {
-        "scenario": name, "scene": str(path.relative_to(ROOT)), "simulated_s": sim.time, "dt": sim.dt,
+        "scenario": name, "scene": str(path.relative_to(SCENES.parent)), "simulated_s": sim.time, "dt": sim.dt,
         "steps": len(sim.log), "wall_s": wall, "steps_per_s": len(sim.log) / wall,
         "mean_collide_ms": 1e3 * float(np.mean([r.collide_s for r in sim.log])),
         "max_penetration_mm": 1e3 * max((r.max_penetration for r in sim.log), default=0.0),

@@ -86,10 +86,31 @@ def installed_wheel(wheel, tmp_path_factory):
 def test_the_wheel_installs_only_the_projects_own_top_level_names(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
-    assert top == {"zoo", "sdfzoo"}, top
+    assert top == {"zoo", "sdfzoo"}, top  # no investigations/: it stays in the repository
     packages = {n.rsplit("/", 1)[0] for n in names if n.endswith(".py")}
     assert {"sdfzoo/cli", "sdfzoo/pipeline", "sdfzoo/benches", "zoo", "zoo/sim"} <= packages
     assert "zoo/data/manifests/categories/mugs.toml" in names and "zoo/data/scenes/demo-mug-rack.toml" in names
+
+
+SIM_BENCH_FILES = """
+import pathlib, zoo
+from sdfzoo.benches import sim_bench, sim_references, sim_scenarios
+package = pathlib.Path(zoo.__file__).parent
+scenes = [sim_scenarios.SCENES / s.scene for s in sim_scenarios.SCENARIOS.values()]
+scenes += [sim_references.SCENES / name for name in sim_references.SCENARIOS.values()]
+scenes += [sim_scenarios.SCENES / name for name in sim_bench.SCENES.values()]
+assert all(path.is_file() and path.is_relative_to(package) for path in scenes), scenes
+assert not sim_references.CACHE.resolve().is_relative_to(package.parent), sim_references.CACHE.resolve()
+print("ok", len(scenes))
+"""
+
+
+@pytest.mark.slow
+def test_the_wheels_sim_benches_read_the_bundled_scenes_and_cache_outside_the_package(installed_wheel):
+    """`zoo bench --sim`'s scenarios and references find their scene files in the wheel, and CoACD's cache is
+    written under the working folder, never into site-packages."""
+    python, work, env = installed_wheel
+    assert _run([python, "-c", SIM_BENCH_FILES], work, env).stdout.startswith("ok ")
 
 
 @pytest.mark.slow
