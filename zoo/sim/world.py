@@ -443,6 +443,7 @@ class World:
         deepest = 0.0
         velocities: dict[int, np.ndarray] = {}
         poses: dict[int, np.ndarray] = {}
+        near = []  # (pair, its margin this step): the pairs the bounding balls cannot rule out
         for pair in self.pairs:
             for body in (pair.sdf_body.body, pair.body):
                 if body not in velocities:
@@ -456,7 +457,14 @@ class World:
                 continue
             stats.margin = max(stats.margin, margin)
             stats.speculative |= closing > max(self.margin, pair.params.margin)
-            found = self._collide(pair, data, margin, velocities)
+            near.append((pair, margin))
+        segments = self._collide_segments([(p, m) for p, m in near if p.kind == "segment"], data)
+        for pair, margin in near:
+            if pair.kind == "segment":
+                contacts, faces_world = segments.get(id(pair), (None, None))
+            else:
+                contacts, faces_world = self._collide(pair, data, margin)
+            found = self._usable(pair, data, contacts, faces_world, velocities)
             if found is None:
                 continue
             contacts, keep, arrays = found
@@ -495,30 +503,33 @@ class World:
         linear = float(np.linalg.norm(a[:3] - b[:3]))
         return (linear + reach * float(np.linalg.norm(a[3:])) + lever * float(np.linalg.norm(b[3:]))) * self.model.opt.timestep
 
-    def _collide(self, pair: Pair, data, margin: float, velocities: dict):
-        """(zoo.Contacts in the world frame, kept indices, their :func:`as_numpy` arrays) of one pair, or None."""
+    def _collide(self, pair: Pair, data, margin: float):
+        """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a mesh or plane pair, or (None, None)."""
         sdf_body = pair.sdf_body
         t_sdf, t_other = body_pose(data, sdf_body.body), pair.surface_pose(data)
         if pair.kind == "plane":
-            contacts, faces_world = self._collide_plane(pair, t_sdf, t_other, margin)
-        elif pair.kind == "segment":
-            contacts, faces_world = self._collide_segment(pair, t_sdf, t_other, margin)
-        else:
-            world_lo, world_hi = _world_box(t_sdf, sdf_body.lo - margin, sdf_body.hi + margin)
-            mesh_lo, mesh_hi = _world_box(t_other, pair.lo, pair.hi)
-            if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
-                return None
-            if pair.collider is None:
-                contacts, faces_world = self._collide_refining_near(pair, t_sdf, t_other, margin)
-            else:
-                contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
-                faces_world = pair.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
-                contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]  # back to the surface's own faces
+            return self._collide_plane(pair, t_sdf, t_other, margin)
+        world_lo, world_hi = _world_box(t_sdf, sdf_body.lo - margin, sdf_body.hi + margin)
+        mesh_lo, mesh_hi = _world_box(t_other, pair.lo, pair.hi)
+        if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
+            return None, None
+        if pair.collider is None:
+            return self._collide_refining_near(pair, t_sdf, t_other, margin)
+        contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
+        faces_world = pair.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
+        contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]  # back to the surface's own faces
+        return contacts, faces_world
+
+    def _usable(self, pair: Pair, data, contacts, faces_world, velocities: dict):
+        """(contacts, the indices MuJoCo gets, their :func:`as_numpy` arrays), or None where there are none.
+
+        The contacts MuJoCo can use, before the reduction picks among them: facing their faces, and touching or
+        closing within the step (a separated one beyond that would only brake the bodies at a distance).
+        """
         if contacts is None or len(contacts) == 0:
             return None
+        sdf_body = pair.sdf_body
         points, depths, normals = as_numpy(contacts)
-        # the contacts MuJoCo can use, before the reduction picks among them: facing their faces, and touching or
-        # closing within the step (a separated one beyond that would only brake the bodies at a distance)
         motion_a = (data.xpos[sdf_body.body].copy(), velocities[sdf_body.body])
         motion_b = (data.xpos[pair.body].copy(), velocities[pair.body])
         usable = facing_faces(normals, faces_world, depths) & closing_in_time(
@@ -557,33 +568,51 @@ class World:
         local = vertices @ sdf_from_plane[:3, :3].T + sdf_from_plane[:3, 3]
         return self._collide_in_sdf_frame(pair, local, faces, np.arange(len(faces)), t_sdf, margin)
 
-    def _collide_segment(self, pair: Pair, t_sdf: np.ndarray, t_geom: np.ndarray, margin: float):
-        """A sphere's or capsule's contacts in closed form: its axis segment's point of least f (a sphere: its centre;
-        a capsule: the lower end and the segment's minimum, see :func:`segment_minima`), each at depth f - radius
-        along the SDF's normal there; (contacts in the world frame, their normals as the faces' normals)."""
-        sdf_body = pair.sdf_body
-        sdf_from_geom = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_geom
-        ends = np.array([[0.0, 0.0, -pair.half_length], [0.0, 0.0, pair.half_length]])
-        a, b = ends @ sdf_from_geom[:3, :3].T + sdf_from_geom[:3, 3]
-        dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
-        centres = segment_minima(sdf_body.sdf, a, b, dtype)  # (C, 3), SDF frame
-        with torch.no_grad():
-            values, grads = sdf_body.sdf.value_and_grad(torch.as_tensor(centres, dtype=dtype))
-        values, grads = values.double().cpu().numpy().reshape(-1), grads.double().cpu().numpy().reshape(-1, 3)
-        length = np.linalg.norm(grads, axis=1, keepdims=True)
-        normals = grads / np.where(length > 0, length, 1.0)
-        depths = values - pair.radius
-        keep = depths <= margin
-        if not keep.any():
-            return None, None
-        points = centres[keep] - pair.radius * normals[keep]  # the sphere's or capsule's point deepest in the SDF
-        rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
-        normals_world = normals[keep] @ rotation.T
-        k = int(keep.sum())
-        contacts = zoo.Contacts(points=torch.as_tensor(points @ rotation.T + origin), depths=torch.as_tensor(depths[keep]),
-                                normals=torch.as_tensor(normals_world), triangles=torch.full((k,), -1, dtype=torch.long),
-                                bary=torch.zeros(k, 3, dtype=torch.float64), n_triangles=0, n_candidates=k, method="closed-form")
-        return contacts, normals_world
+    def _collide_segments(self, near: list, data) -> dict:
+        """Spheres' and capsules' contacts in closed form, every such pair of a step together (one set of queries per
+        SDF body): {id(pair): (contacts in the world frame, their normals as the faces' normals)} for the pairs that
+        touch or come within their margin. A pair's contacts are its axis segment's points of least f
+        (:func:`segment_minima`), each at depth f - radius along the SDF's normal there."""
+        found = {}
+        by_body: dict[str, list] = {}
+        for pair, margin in near:
+            by_body.setdefault(pair.sdf_body.name, []).append((pair, margin))
+        for pairs in by_body.values():
+            sdf_body = pairs[0][0].sdf_body
+            t_sdf = body_pose(data, sdf_body.body)
+            sdf_from_world = invert_pose(torch.from_numpy(t_sdf)).numpy()
+            ends = []
+            for pair, _ in pairs:
+                t_geom = sdf_from_world @ pair.surface_pose(data)
+                axis = t_geom[:3, 2] * pair.half_length
+                ends.append((t_geom[:3, 3] - axis, t_geom[:3, 3] + axis))
+            radii = np.array([pair.radius for pair, _ in pairs])
+            margins = np.array([margin for _, margin in pairs])
+            dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
+            centres, owner = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
+                                            radii + margins, dtype)
+            if not len(centres):
+                continue
+            with torch.no_grad():
+                values, grads = sdf_body.sdf.value_and_grad(torch.as_tensor(centres, dtype=dtype))
+            values, grads = values.double().cpu().numpy().reshape(-1), grads.double().cpu().numpy().reshape(-1, 3)
+            length = np.linalg.norm(grads, axis=1, keepdims=True)
+            normals = grads / np.where(length > 0, length, 1.0)
+            depths = values - radii[owner]
+            rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
+            for index, (pair, margin) in enumerate(pairs):
+                rows = np.nonzero((owner == index) & (depths <= margin))[0]
+                if not len(rows):
+                    continue
+                points = centres[rows] - pair.radius * normals[rows]  # its point deepest in the SDF
+                normals_world = normals[rows] @ rotation.T
+                k = len(rows)
+                found[id(pair)] = (zoo.Contacts(
+                    points=torch.as_tensor(points @ rotation.T + origin), depths=torch.as_tensor(depths[rows]),
+                    normals=torch.as_tensor(normals_world), triangles=torch.full((k,), -1, dtype=torch.long),
+                    bary=torch.zeros(k, 3, dtype=torch.float64), n_triangles=0, n_candidates=k, method="closed-form"),
+                    normals_world)
+        return found
 
     def _collide_in_sdf_frame(self, pair: Pair, local: np.ndarray, faces: np.ndarray, origin: np.ndarray,
                               t_sdf: np.ndarray, margin: float):
@@ -604,32 +633,55 @@ class World:
 
 SEGMENT_SAMPLES = 9  # points along a capsule's axis where f is read before the search narrows around the lowest
 SEGMENT_REFINE = 8  # golden-section steps around it: the bracket shrinks to 0.618^8 (2%) of two samples' spacing
+SEGMENT_LIPSCHITZ = 2.0  # |grad f| bound used to drop a segment from its samples (a learned SDF's, zoo.coherence's)
 
 
-def segment_minima(sdf, a: np.ndarray, b: np.ndarray, dtype) -> np.ndarray:
-    """Points (C, 3) on the segment from ``a`` to ``b`` (3,) where ``sdf`` is least: the segment's minimum by
-    sampling then golden-section search around the lowest sample, and, for a segment of some length, its two
-    ends (a capsule lying on a flat face touches along its length: its ends hold it level). One point where
-    ``a`` equals ``b`` (a sphere)."""
-    axis = b - a
-    if float(np.linalg.norm(axis)) == 0.0:
-        return a[None].copy()
+def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the segments from ``a`` to ``b`` (S, 3) where ``sdf`` is least, all segments at once.
 
-    def f(t: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            return torch.as_tensor(sdf(torch.as_tensor(a + t[:, None] * axis, dtype=dtype))).double().cpu().numpy().reshape(-1)
+    Each segment is sampled at ``SEGMENT_SAMPLES`` points; a segment whose samples, less the Lipschitz bound times
+    half their spacing, stay above its ``reach`` (S,) (its radius plus margin) is dropped; for the others a
+    golden-section search narrows around the lowest sample, and the minimum and the segment's two ends are returned
+    (a capsule lying on a flat face touches along its length: its ends hold it level). A segment of no length (a
+    sphere) gives its one point.
 
+    Returns:
+        points (C, 3) and owner (C,) int: the segment each point lies on.
+    """
+    axis = b - a  # (S, 3)
     t = np.linspace(0.0, 1.0, SEGMENT_SAMPLES)
-    values = f(t)
-    best = int(np.argmin(values))
-    lo, hi = t[max(best - 1, 0)], t[min(best + 1, len(t) - 1)]
+    lengths = np.linalg.norm(axis, axis=1)
+    samples = np.where(lengths[:, None] > 0, t[None], 0.0)  # (S, T): a sphere's samples all lie at its centre
+
+    values = _along(sdf, a, axis, samples, dtype)
+    spacing = lengths / (SEGMENT_SAMPLES - 1)
+    alive = np.nonzero(values.min(axis=1) - SEGMENT_LIPSCHITZ * spacing / 2 <= reach)[0]
+    if not len(alive):
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    best = np.argmin(values[alive], axis=1)
+    lo, hi = t[np.maximum(best - 1, 0)], t[np.minimum(best + 1, SEGMENT_SAMPLES - 1)]
     ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    for _ in range(SEGMENT_REFINE):  # both inner points per step in one query: fewer calls than the classic form
-        inner = np.array([hi - ratio * (hi - lo), lo + ratio * (hi - lo)])
-        left, right = f(inner)
-        lo, hi = (lo, inner[1]) if left <= right else (inner[0], hi)
+    a_alive, axis_alive = a[alive], axis[alive]
+    for _ in range(SEGMENT_REFINE):  # both inner points of every segment per step in one query
+        inner = np.stack([hi - ratio * (hi - lo), lo + ratio * (hi - lo)], axis=1)
+        left, right = _along(sdf, a_alive, axis_alive, inner, dtype).T
+        lower = left <= right
+        lo, hi = np.where(lower, lo, inner[:, 0]), np.where(lower, inner[:, 1], hi)
     middle = 0.5 * (lo + hi)
-    return a + np.array([0.0, middle, 1.0])[:, None] * axis
+    sphere = lengths[alive] == 0
+    params = np.stack([np.zeros_like(middle), middle, np.ones_like(middle)], axis=1)  # (A, 3): an end, the minimum, the other end
+    points = a_alive[:, None] + params[..., None] * axis_alive[:, None]  # (A, 3, 3)
+    owner = np.repeat(alive, 3)
+    keep = np.repeat(~sphere, 3) | np.tile([True, False, False], len(alive))  # a sphere: its centre once
+    return points.reshape(-1, 3)[keep], owner[keep]
+
+
+def _along(sdf, a: np.ndarray, axis: np.ndarray, at: np.ndarray, dtype) -> np.ndarray:
+    """f at the points ``a + at * axis`` of each segment: a (S, 3), axis (S, 3), at (S, k) -> (S, k), one query."""
+    points = a[:, None] + at[..., None] * axis[:, None]
+    with torch.no_grad():
+        values = sdf(torch.as_tensor(points.reshape(-1, 3), dtype=dtype))
+    return torch.as_tensor(values).double().cpu().numpy().reshape(at.shape)
 
 
 def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
