@@ -165,16 +165,16 @@ class Settings:
     model (an MJCF the scene names) has, or MuJoCo's default where there is none.
 
     ``friction``, ``solref`` and ``solimp`` are those of the geoms the simulation adds (MuJoCo mixes them
-    with the other geom's at each contact, ``mj_contactParam``)."""
+    with the other geom's at each contact, ``mj_contactParam``); None leaves MuJoCo's default."""
 
     dt: float | None = None
     gravity: tuple | None = None
     integrator: str | None = None
     cone: str | None = None
     impratio: float | None = None
-    friction: float = 1.0
-    solref: tuple = (0.02, 1.0)
-    solimp: tuple = (0.9, 0.95, 0.001, 0.5, 2.0)
+    friction: float | None = None
+    solref: tuple | None = None
+    solimp: tuple | None = None
 
 
 def quaternion(rotation: np.ndarray) -> np.ndarray:
@@ -254,9 +254,14 @@ def add_body(spec, body: Body, settings: Settings, visual: tuple[np.ndarray, np.
     mesh = spec.add_mesh(name=body.name, uservert=np.asarray(vertices, dtype=np.float64).reshape(-1).tolist(),
                          userface=np.asarray(faces, dtype=np.int64).reshape(-1).tolist())
     mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL  # an open or flat mesh has no volume
-    b.add_geom(name=body.name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=body.name, contype=0, conaffinity=0, mass=0.0,
-               rgba=list(SDF_RGBA if body.sdf is not None else MESH_RGBA), friction=[settings.friction, 0.005, 1e-4],
-               solref=list(settings.solref), solimp=list(settings.solimp))
+    geom = b.add_geom(name=body.name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=body.name, contype=0, conaffinity=0,
+                      mass=0.0, rgba=list(SDF_RGBA if body.sdf is not None else MESH_RGBA))
+    if settings.friction is not None:
+        geom.friction[0] = settings.friction  # sliding; torsional and rolling keep MuJoCo's defaults
+    if settings.solref is not None:
+        geom.solref = list(settings.solref)
+    if settings.solimp is not None:
+        geom.solimp = list(settings.solimp)
     if body.drive:
         _add_drive(spec, body)
 

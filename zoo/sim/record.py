@@ -152,7 +152,7 @@ def provenance(sim, scene_path: str | os.PathLike | None = None) -> dict:
         "zoo_version": zoo.__version__, "mujoco_version": mujoco.__version__,
         "scene": str(scene_path) if scene_path else "", "scene_sha256": sha256_file(scene_path) if scene_path else "",
         "bodies": json.dumps(sim.labels), "mjcf": str(sim.mjcf or ""), "method": sim.method, "dt": sim.dt,
-        "margin": sim.margin, "friction": sim.settings.friction, "solref": json.dumps(list(sim.settings.solref)),
+        "margin": sim.margin, "friction": json.dumps(sim.settings.friction), "solref": json.dumps(sim.settings.solref),
         "integrator": _option_name(mujoco.mjtIntegrator(int(m.opt.integrator))), "cone": _option_name(mujoco.mjtCone(int(m.opt.cone))),
         "impratio": float(m.opt.impratio), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }

@@ -11,7 +11,7 @@ margin = 0.001
 dt = 0.002                      # default 0.002 (or the MJCF's)
 seconds = 0.5                   # what `zoo simulate` runs unless --seconds says otherwise
 gravity = [0, 0, -9.81]
-friction = 1.0                  # friction, solref, solimp: of the geoms the scene adds
+friction = 1.0                  # friction, solref, solimp: of the geoms the scene adds (default MuJoCo's)
 solref = [0.02, 1.0]
 solimp = [0.9, 0.95, 0.001, 0.5, 2.0]
 integrator = "implicitfast"     # or "euler", "implicit", "rk4" (default implicitfast, or the MJCF's)
@@ -85,8 +85,8 @@ def simulation_settings(spec: dict, **overrides) -> dict:
     settings = {
         "dt": sim_spec.get("dt"), "gravity": sim_spec.get("gravity"),
         "method": spec.get("method", "amortized"), "margin": float(spec.get("margin", 1e-3)),
-        "friction": sim_spec.get("friction", 1.0), "solref": sim_spec.get("solref", (0.02, 1.0)),
-        "solimp": sim_spec.get("solimp", (0.9, 0.95, 0.001, 0.5, 2.0)), "integrator": sim_spec.get("integrator"),
+        "friction": sim_spec.get("friction"), "solref": sim_spec.get("solref"),
+        "solimp": sim_spec.get("solimp"), "integrator": sim_spec.get("integrator"),
         "cone": sim_spec.get("cone"), "impratio": sim_spec.get("impratio"),
         "reduce": sim_spec.get("reduce", True), "refine": sim_spec.get("refine", True),
         "coherence": sim_spec.get("coherence", True),

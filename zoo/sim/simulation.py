@@ -70,7 +70,7 @@ class Simulation:
             without a detector falls back to "fw" under "amortized".
         margin: contact margin, m: contacts are found this far before touching.
         friction, solref, solimp: the contact parameters of the geoms the simulation adds (MuJoCo mixes
-            them with the other geom's; with no MJCF, every contact's).
+            them with the other geom's; with no MJCF, every contact's); None keeps MuJoCo's defaults.
         integrator: "implicitfast" (default), "euler", "implicit" or "rk4" (or the MJCF's).
         cone, impratio: MuJoCo's friction cone ("pyramidal" or "elliptic") and the ratio of its frictional to
             normal constraint impedance (default pyramidal and 1, or the MJCF's). MuJoCo's defaults let a
@@ -101,7 +101,7 @@ class Simulation:
     """
 
     def __init__(self, dt: float | None = None, gravity=None, method: str = "amortized", margin: float = 1e-3,
-                 friction: float = 1.0, solref=(0.02, 1.0), solimp=(0.9, 0.95, 0.001, 0.5, 2.0),
+                 friction: float | None = None, solref=None, solimp=None,
                  integrator: str | None = None, cone: str | None = None, impratio: float | None = None,
                  coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None):
         if dt is not None and not (dt > 0 and math.isfinite(dt)):
@@ -110,7 +110,7 @@ class Simulation:
             raise InputError(f"integrator {integrator!r} is not supported; use one of {sorted(INTEGRATORS)}")
         if not (margin >= 0 and math.isfinite(margin)):
             raise InputError(f"margin must be >= 0, got {margin}")
-        if not (friction >= 0 and math.isfinite(friction)):
+        if friction is not None and not (friction >= 0 and math.isfinite(friction)):
             raise InputError(f"friction must be >= 0, got {friction}")
         if cone is not None and cone not in CONES:
             raise InputError(f"cone {cone!r} is not a friction cone; use one of {CONES}")
@@ -121,8 +121,9 @@ class Simulation:
         if mjcf is None:  # MuJoCo's defaults but for the timestep and the integrator, sdfzoo's
             dt, integrator = 0.002 if dt is None else dt, "implicitfast" if integrator is None else integrator
         self.settings = Settings(dt=dt, gravity=None if gravity is None else tuple(float(g) for g in gravity),
-                                 integrator=integrator, cone=cone, impratio=impratio, friction=float(friction),
-                                 solref=tuple(solref), solimp=tuple(solimp))
+                                 integrator=integrator, cone=cone, impratio=impratio,
+                                 friction=None if friction is None else float(friction),
+                                 solref=None if solref is None else tuple(solref), solimp=None if solimp is None else tuple(solimp))
         self.method, self.margin = method, float(margin)
         self.coherence, self.reduce, self.refine = coherence, reduce, refine
         self.bodies: dict[str, Body] = {}
