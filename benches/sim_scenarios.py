@@ -297,7 +297,7 @@ def _gripper_carried(sim, trace, extra) -> dict:
     mug_move = np.asarray(end["mug"]) - np.asarray(grasped["mug"])
     hand_move = np.asarray(end["hand"]) - np.asarray(grasped["hand"])
     settled = max(float(np.linalg.norm(np.asarray(r["mug"]) - start)) for r in trace if r["time"] < 0.04)  # before the pads arrive
-    on_table = all(r["table"] for r in trace[2:] if r["time"] < 0.04)  # released at its resting height
+    on_table = all(r["table"] for r in trace if 0.01 <= r["time"] < 0.04)  # released at its resting height: it lands first
     slip = float(np.linalg.norm(mug_move - hand_move))
     both = end["pads"] == sorted(PADS)
     return {"mug_rise_mm": 1e3 * float(mug_move[2]), "mug_shift_mm": 1e3 * float(mug_move[0]),
