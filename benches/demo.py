@@ -19,7 +19,7 @@ import torch
 import zoo
 from zoo.errors import InputError, ZooError
 from zoo.parts import make_part
-from zoo.scenes import Scene, load_scene, run_scene, scene_from_dict, write_outputs
+from zoo.scenes import Scene, load_collision_scene, run_scene, scene_from_dict, write_outputs
 
 DEMO_SCENE = "demo-mug-rack"  # scenes/demo-mug-rack.toml: mug_rack_scene(zoo.load("mugs")), written down
 MUG_MODEL = "mugs"
@@ -33,7 +33,7 @@ RACK_MUG_SIZE = 0.13  # the mug size (normalised cube side, metres) the rack's s
 def demo_scene() -> tuple[Scene, str]:
     """The demo's scene and a line saying what it is: the mug on the rack, or the ring without a mugs model."""
     try:
-        scene = load_scene(DEMO_SCENE)
+        scene = load_collision_scene(DEMO_SCENE)
     except ZooError as exc:
         return scene_from_dict(demo_scene_spec()), f"no {MUG_MODEL!r} model is packaged ({exc}); hanging an analytic ring instead"
     if getattr(scene.sdf.model, "detector", None) is None:

@@ -78,7 +78,7 @@ from zoo.collision import DEFAULT_ITERS, candidate_triangles
 from zoo.errors import InputError, ModelNotFoundError
 from zoo.files import atomic_write_text
 from zoo.geometry import bary_to_points, invert_pose, transform_points
-from zoo.scenes import Scene, load_scene, read_scene, resolve_scene, scene_from_dict
+from zoo.scenes import Scene, load_collision_scene, read_scene, resolve_scene, scene_from_dict
 from zoo.voxel import VoxelSDF
 
 from .solvers import machine_info, steady_allocator
@@ -148,7 +148,7 @@ def load_bench_scene(path: str | os.PathLike, standin_dir: str | os.PathLike = "
     path = Path(path)
     note = ""
     try:
-        scene, kind = load_scene(path), "model"
+        scene, kind = load_collision_scene(path), "model"
     except ModelNotFoundError as exc:
         note = str(exc)
         if not allow_standin:

@@ -28,9 +28,9 @@ def collide(
 
     from sdfzoo.benches.demo import CONTACT_ROWS, contacts_table
     from zoo.progress import shown
-    from zoo.scenes import contacts_summary, load_scene, run_scene, write_outputs
+    from zoo.scenes import contacts_summary, load_collision_scene, run_scene, write_outputs
 
-    s = load_scene(scene)
+    s = load_collision_scene(scene)
     if method:
         s.method = method
     with shown():

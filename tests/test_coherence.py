@@ -361,9 +361,9 @@ def test_the_screen_clears_faces_far_above_the_margin_and_keeps_collides_contact
 
 @pytest.fixture(scope="module")
 def mug_rack():
-    from zoo.scenes import load_scene
+    from zoo.scenes import load_collision_scene
 
-    scene = load_scene("demo-mug-rack")
+    scene = load_collision_scene("demo-mug-rack")
     mesh = (np.asarray(scene.mesh.vertices, dtype=np.float32), np.asarray(scene.mesh.faces))
     return scene, mesh
 
@@ -457,10 +457,10 @@ def measure(steps: int = 50, step_length: float = 5e-4, threads: int = 1) -> dic
     """The demo mug sliding along the rack's peg, ``step_length`` per step: median ms per step and SDF points
     queried per step (code-cloud lookups: values and gradients alike), from scratch and coherent."""
     from zoo.neural import NeuralShape
-    from zoo.scenes import load_scene
+    from zoo.scenes import load_collision_scene
 
     torch.set_num_threads(threads)
-    scene = load_scene("demo-mug-rack")
+    scene = load_collision_scene("demo-mug-rack")
     mesh = (np.asarray(scene.mesh.vertices, dtype=np.float32), np.asarray(scene.mesh.faces))
     poses = slide_along_peg(scene.sdf_pose.astype(np.float32), step_length)
     counted = {"points": 0}

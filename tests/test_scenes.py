@@ -9,7 +9,7 @@ import zoo
 from sdfzoo.benches.stress import run_stress
 from zoo import parts
 from zoo.errors import DataError, InputError
-from zoo.scenes import load_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
+from zoo.scenes import load_collision_scene, pose_matrix, resolve_scene, run_scene, scene_from_dict, write_outputs
 
 
 def sphere_on_plane(method="fw"):
@@ -49,7 +49,7 @@ def test_scene_file_round_trip(tmp_path):
         'name = "ball"\nmargin = 0.002\n[sdf]\nanalytic = "sphere"\nparams = { radius = 0.05 }\n'
         'pose = { translation = [0.01, -0.02, 0.049] }\n[mesh]\nprocedural = "plane"\nparams = { size = 0.2, max_edge = 0.01 }\n'
     )
-    scene = load_scene(tmp_path / "s.toml")
+    scene = load_collision_scene(tmp_path / "s.toml")
     contacts = run_scene(scene)
     paths = write_outputs(scene, contacts, tmp_path / "out")
     report = json.loads(paths["json"].read_text())
@@ -67,10 +67,10 @@ def test_pose_matrix_is_rigid_and_matches_euler():
 
 def test_bad_scenes_raise_typed_errors(tmp_path):
     with pytest.raises(DataError):
-        load_scene(tmp_path / "missing.toml")
+        load_collision_scene(tmp_path / "missing.toml")
     (tmp_path / "bad.toml").write_text("name = [")
     with pytest.raises(DataError):
-        load_scene(tmp_path / "bad.toml")
+        load_collision_scene(tmp_path / "bad.toml")
     with pytest.raises(InputError):
         scene_from_dict({"sdf": {"analytic": "blob"}, "mesh": {"procedural": "plane"}})
     with pytest.raises(InputError):
@@ -112,7 +112,7 @@ def test_the_bundled_demo_scene_loads_by_name_without_zoo_data_and_collides(tmp_
     monkeypatch.delenv("ZOO_DATA", raising=False)
     monkeypatch.chdir(tmp_path)  # not the clone: the bare name and the clone-relative path are both looked up
     assert resolve_scene("demo-mug-rack") == resolve_scene("scenes/demo-mug-rack.toml")
-    scene = load_scene("demo-mug-rack")
+    scene = load_collision_scene("demo-mug-rack")
     assert scene.name == "demo-mug-rack" and scene.mesh_label == "procedural:rack" and scene.method == "amortized"
     contacts = run_scene(scene)
     assert set(scene.timings) >= {"first_collide_s", "collide_s"}  # the time of a warm call, and of the first
@@ -139,7 +139,7 @@ def test_zoo_collide_prints_the_contact_table_and_writes_json_and_png(tmp_path, 
 def test_the_demo_scene_file_holds_the_pose_hanging_pose_computes():
     from sdfzoo.benches.demo import mug_rack_scene
 
-    computed, bundled = mug_rack_scene(zoo.load("mugs")), load_scene("demo-mug-rack")
+    computed, bundled = mug_rack_scene(zoo.load("mugs")), load_collision_scene("demo-mug-rack")
     np.testing.assert_allclose(bundled.sdf_pose, computed.sdf_pose, rtol=0, atol=1e-12)
     assert bundled.margin == pytest.approx(computed.margin, rel=1e-12) and bundled.sdf_label == computed.sdf_label
     np.testing.assert_array_equal(bundled.mesh.vertices, computed.mesh.vertices)

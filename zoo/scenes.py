@@ -24,7 +24,7 @@ pose = { translation = [0, 0, 0] }
 
 A scene loads only the model it names and builds a voxel grid only for ``voxel-fw``. A scene is
 named by its path or, for the bundled ones (the project's ``scenes/``, the wheel's ``zoo/data/scenes``),
-by its bare name: ``load_scene("demo-mug-rack")`` (:func:`resolve_scene`). Its picture is drawn by
+by its bare name: ``load_collision_scene("demo-mug-rack")`` (:func:`resolve_scene`). Its picture is drawn by
 :mod:`zoo.scene_picture` (matplotlib, imported only then).
 """
 
@@ -119,7 +119,7 @@ def read_scene(path: str | os.PathLike) -> tuple[dict, Path]:
         raise DataError(f"scene file {path} is not valid TOML: {exc}") from exc
 
 
-def load_scene(path: str | os.PathLike) -> Scene:
+def load_collision_scene(path: str | os.PathLike) -> Scene:
     """Read a scene file (a path, or a bundled scene's name: :func:`resolve_scene`) and build its SDF
     and mesh (loading only the model it names)."""
     spec, path = read_scene(path)

@@ -20,7 +20,8 @@ __all__ = ["Simulation", "StepRecord", "World", "attach", "load_scene"]
 
 
 def load_scene(path, **overrides) -> Simulation:
-    """A :class:`Simulation` from a scene file (see :mod:`zoo.sim.scene`)."""
-    from .scene import load_scene as _load
+    """A :class:`Simulation` from a scene file (see :mod:`zoo.sim.scene`); ``zoo.scenes.load_collision_scene`` reads a
+    collision scene for ``zoo.collide``."""
+    from .scene import simulation_from_file
 
-    return _load(path, **overrides)
+    return simulation_from_file(path, **overrides)

@@ -65,7 +65,7 @@ SCENE_ONLY = ("seconds", "drop", "sdf_mass", "camera", "qpos")  # [sim] keys tha
 BODY_KEYS = {"name", "sdf", "mesh", "mass", "density", "inertia", "com", "joint", "axis", "anchor", "pose", "velocity", "drive"}
 
 
-def load_scene(path: str | os.PathLike, **overrides) -> Simulation:
+def simulation_from_file(path: str | os.PathLike, **overrides) -> Simulation:
     """A :class:`Simulation` from a scene file (a path or a bundled scene's name); ``overrides`` replace the
     file's values: Simulation's arguments (dt, method, margin, friction, ...) and [sim]'s seconds, drop,
     sdf_mass; None keeps the file's. ``sim.scene_path`` is the file read."""
