@@ -1,5 +1,5 @@
 """MuJoCo's own viewers on a model with sdfzoo's contacts hooked in: the passive viewer driven by the user's loop
-and the managed viewer's own loop, each in a child process on a virtual display (xvfb-run; skipped without it).
+and the managed viewer's own loop, each in a child process on a virtual display (Xvfb; skipped without it).
 A ball whose collision shape is a zoo.Sphere comes to rest on the plane in both: the contacts reach MuJoCo's solver."""
 
 from __future__ import annotations
@@ -42,12 +42,30 @@ with world.hooked():
 '''
 
 
-@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="no xvfb-run (Debian's xvfb) for a virtual display")
+@pytest.fixture
+def display():
+    """A virtual X display (Xvfb, which says its number once it is ready), stopped afterwards."""
+    read, write = os.pipe()
+    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+                              pass_fds=(write,), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(write)
+    try:
+        with os.fdopen(read) as pipe:
+            number = pipe.readline().strip()
+        if not number:
+            pytest.fail("Xvfb started but gave no display number")
+        yield f":{number}"
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+@pytest.mark.skipif(shutil.which("Xvfb") is None, reason="no Xvfb (Debian's xvfb) for a virtual display")
 @pytest.mark.parametrize("script", [PASSIVE, MANAGED], ids=["launch_passive", "launch"])
-def test_mujocos_viewers_step_the_hooked_model(tmp_path, script):
-    env = {**os.environ, "MUJOCO_GL": "glfw"}
-    done = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 640x480x24", sys.executable, "-c", script],
-                          capture_output=True, text=True, timeout=240, env=env, cwd=tmp_path)
+def test_mujocos_viewers_step_the_hooked_model(tmp_path, display, script):
+    env = {**os.environ, "MUJOCO_GL": "glfw", "DISPLAY": display}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=240, env=env,
+                          cwd=tmp_path, stdin=subprocess.DEVNULL)
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT")]
     assert lines, done.stdout + done.stderr
     sim_time, height, contacts = (float(x) for x in lines[-1].split()[1:])
