@@ -27,6 +27,7 @@ from ..errors import require
 from ..files import atomic_path
 from ..scene_picture import MESH_COLOUR, SDF_COLOUR, _draw_panel, clipped_to_cube, posed, shaded, surface_points
 from .contacts import face_normals
+from .geoms import cube_corners
 
 MAX_FRAMES = 60
 FPS = 12.0
@@ -52,11 +53,6 @@ class Drawable:
         if not len(everything):
             return np.zeros((0, 3))
         return cube_corners(everything.min(0), everything.max(0))
-
-
-def cube_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The 8 corners (8, 3) of the box with corners ``lo`` and ``hi`` (3,)."""
-    return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
 
 
 def drawable(body, box=None, resolution: int = 28, max_points: int = SURFACE_POINTS) -> Drawable:

@@ -225,6 +225,11 @@ def geom_segment(model, geom: int) -> tuple[float, float] | None:
     return None
 
 
+def cube_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of the box with corners ``lo`` and ``hi`` (3,)."""
+    return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
+
+
 def geom_pose(data, geom: int) -> np.ndarray:
     """(4, 4) world-from-geom of ``geom`` at the data's current kinematics."""
     pose = np.eye(4)

@@ -59,6 +59,7 @@ from .geoms import (
     body_geoms,
     body_pose,
     body_velocity,
+    cube_corners,
     excluded_bodies,
     geom_parameters,
     geom_pose,
@@ -556,7 +557,7 @@ class World:
         """The pair's contacts with a patch of its (infinite) plane under the SDF's box, at this step."""
         sdf_body = pair.sdf_body
         plane_from_sdf = invert_pose(torch.from_numpy(t_plane)).numpy() @ t_sdf
-        corners = _corners(sdf_body.lo, sdf_body.hi) @ plane_from_sdf[:3, :3].T + plane_from_sdf[:3, 3]
+        corners = cube_corners(sdf_body.lo, sdf_body.hi) @ plane_from_sdf[:3, :3].T + plane_from_sdf[:3, 3]
         if corners[:, 2].min() > margin:
             return None, None
         # cells whose diagonal is within the refinement's edge, so that zoo.collide answers them as they are
@@ -688,11 +689,6 @@ def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
     from .model import mesh_arrays
 
     return mesh_arrays(mesh, "surface")
-
-
-def _corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The 8 corners (8, 3) of the box [lo, hi]."""
-    return np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
 
 
 def _grid(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
