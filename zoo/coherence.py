@@ -97,6 +97,9 @@ REFRESH_FRACTION = 0.5
 # Poses kept for the lasting proofs (one per call): when full, the proofs made at the older half are dropped (those faces
 # go back to the exact tests), so the history and its per-call work stay bounded however long the trajectory.
 POSE_HISTORY = 64
+# With a proxy: an answer of the SDF whose Frank-Wolfe gap exceeds this fraction of the margin is polished on the SDF by
+# one warm step (:func:`warm_step`); below it the proxy's minimiser is taken as the SDF's.
+POLISH_GAP_FRACTION = 0.02
 
 
 @dataclass
@@ -116,6 +119,11 @@ class CoherenceStats:
         reused: of the candidates, answers kept from an earlier step with no query (moved less than ``reuse_distance``).
         screened: of the warm-started, those the screen put above the margin (one value-and-gradient query each, no
             descent: :func:`screen_bound`).
+        exact_faces: with a proxy, the faces whose proxy minimum came within the margin plus the proxy's error bound,
+            answered by the SDF itself (all the counts above are then of proxy queries).
+        exact_points: with a proxy, the points the SDF itself was asked at (values and gradients alike).
+        exact_kept: of ``exact_faces``, those whose SDF answer was kept from an earlier step (no query).
+        fallback: of ``exact_faces``, those whose proxy answer lay out of the proxy's band, solved from scratch on the SDF.
     """
 
     steps: int = 0
@@ -129,6 +137,10 @@ class CoherenceStats:
     retried: int = 0
     reused: int = 0
     screened: int = 0
+    exact_faces: int = 0
+    exact_points: int = 0
+    exact_kept: int = 0
+    fallback: int = 0
 
     def add(self, other: CoherenceStats) -> None:
         for key, value in asdict(other).items():
@@ -275,14 +287,18 @@ def _plane_descent(tri: torch.Tensor, bary: torch.Tensor, g: torch.Tensor) -> to
 
 
 class _CountingSDF:
-    """An SDF's values, counting the points asked for (what the cell bounds cost)."""
+    """An SDF, counting the points asked for (values and gradients alike: what the cell bounds, the proxy's survivors cost)."""
 
     def __init__(self, sdf):
-        self.sdf, self.queries = sdf, 0
+        self.sdf, self.queries, self.bounds = sdf, 0, sdf.bounds
 
     def __call__(self, points: torch.Tensor):
         self.queries += int(points.shape[0])
         return self.sdf(points)
+
+    def value_and_grad(self, points: torch.Tensor):
+        self.queries += int(points.shape[0])
+        return self.sdf.value_and_grad(points)
 
 
 class CoherentCollider:
@@ -300,6 +316,15 @@ class CoherentCollider:
         reuse_distance: m; a candidate whose points moved less than this relative to the SDF since it was solved
             keeps its answer, its depth updated along its normal; default ``REUSE_FRACTION`` of the margin; 0 solves
             every candidate at every step. Applies with ``warm_start`` only.
+        proxy: None (default) or False: every query is the SDF's. True: the SDF's cached narrow-band proxy
+            (:func:`zoo.proxy.cached_proxy` at this margin, baked on first use), or a :class:`zoo.proxy.ProxySDF`. The
+            culling, the screens and the search (Frank-Wolfe, ``iters``, for the faces new to the candidates) then
+            run on the proxy at the margin plus its ``error_bound``, and the SDF itself answers only the faces whose
+            proxy minimum comes that close: one value and gradient at the proxy's minimiser, a warm step from there
+            where its Frank-Wolfe gap exceeds ``POLISH_GAP_FRACTION`` of the margin, and the kept answers of faces
+            that moved less than ``reuse_distance``; a face whose proxy minimiser lies out of the proxy's band is
+            solved from scratch by ``method`` on the SDF. Every contact's point, depth and normal are the SDF's.
+            Needs ``coherence``; not with "voxel-fw".
 
     Call it with the poses of each step: ``contacts = collider(sdf_pose, mesh_pose)`` (4x4 world-from-object,
     None is the identity). ``stats`` sums :class:`CoherenceStats` over all calls, ``last_stats`` holds the
@@ -309,7 +334,7 @@ class CoherentCollider:
     def __init__(self, sdf, mesh, margin: float = 1e-3, method: str = "fw", *, coherence: bool = True,
                  warm_start: bool = True, iters: int | None = None,
                  refine: int = 0, voxel_resolution=256, polish: bool = True, lipschitz: float | None = None,
-                 reuse_distance: float | None = None):
+                 reuse_distance: float | None = None, proxy=None):
         check_sdf(sdf)
         self.sdf = sdf
         self.method = _method(method)
@@ -330,6 +355,7 @@ class CoherentCollider:
         self.lipschitz = motion_lipschitz(sdf) if lipschitz is None else positive_float(lipschitz, "lipschitz")
         reuse = REUSE_FRACTION * self.margin if reuse_distance is None else non_negative_float(reuse_distance, "reuse_distance")
         self.reuse_distance = reuse if self.warm_start else 0.0
+        self._use_proxy(proxy)
         self.vertices, self.faces = _mesh_arrays(mesh)
         corners = self.vertices[self.faces].to(torch.float64)  # (F, 3, 3), the mesh's frame
         self._centroid = corners.mean(dim=1)  # (F, 3)
@@ -353,11 +379,40 @@ class CoherentCollider:
         self._clear_pose = torch.zeros(f.shape[:1], dtype=torch.int64, device=v.device)  # (F,) at this entry of _poses
         self._clear_centroid = torch.zeros((f.shape[0], 3), dtype=torch.float64, device=v.device)  # (F, 3) SDF frame, then
         self._poses = torch.zeros((0, 3, 4), dtype=torch.float64, device=v.device)  # (H, 3, 4) SDF-from-mesh, one per call
+        # with a proxy, the SDF's own last answer per face: barycentrics, value, gradient, and where the face was then
+        self._exact_bary = v.new_zeros((f.shape[0], 3))  # (F, 3)
+        self._exact_value = torch.full(f.shape[:1], torch.nan, dtype=v.dtype, device=v.device)  # (F,) NaN: none
+        self._exact_grad = v.new_zeros((f.shape[0], 3))  # (F, 3)
+        self._exact_at = v.new_zeros((f.shape[0], 3, 3))  # (F, 3, 3) SDF frame
+
+    def _use_proxy(self, proxy) -> None:
+        """Set up the search on a proxy (see the class's ``proxy`` argument): ``self.sdf`` becomes the proxy and
+        ``self.exact`` the SDF given; without one, ``self.exact`` is None."""
+        self.exact, self.proxy, self.exact_method = None, None, self.method
+        if proxy is None or proxy is False:
+            return
+        if not self.coherence:
+            raise InputError("proxy= needs coherence: coherence=False is the from-scratch reference, which queries the SDF only")
+        if self.method == "voxel-fw":
+            raise InputError('proxy= does not apply to method="voxel-fw", which solves on its own grid; use "fw" or "amortized"')
+        if proxy is True:
+            from .proxy import cached_proxy
+
+            proxy = cached_proxy(self.sdf, margin=self.margin)
+        check_sdf(proxy)
+        if not callable(getattr(proxy, "read", None)) or not hasattr(proxy, "error_bound"):
+            raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
+        self.exact, self.proxy, self.sdf = self.sdf, proxy, proxy
+        self.method = "fw"  # the search on the proxy; ``exact_method`` solves the faces out of its band on the SDF
+        self.iters = _iters("fw", None if self.exact_method == "amortized" else self.iters)
+        self.lipschitz = motion_lipschitz(proxy)
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
         """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them;
         ``margin`` replaces the collider's for this call (the bounds carried over do not depend on it)."""
         margin = self.margin if margin is None else non_negative_float(margin, "margin")
+        # on a proxy, everything up to the contacts runs at the margin plus its error bound (f >= proxy - error_bound)
+        search_margin = margin if self.proxy is None else margin + self.proxy.error_bound
         if not self.coherence:
             return collide(self.sdf, (self.vertices, self.faces), sdf_pose, mesh_pose, margin, self.method,
                            iters=None if self.method == "amortized" else self.iters, refine=self.refine,
@@ -370,7 +425,7 @@ class CoherentCollider:
         relative = invert_pose(sdf_pose) @ mesh_pose
         self._record_pose(relative)
         local = transform_points(relative.to(self.vertices.dtype), self.vertices)
-        candidates, kind, f_exact = self._broad_phase(local, margin, stats)
+        candidates, kind, f_exact = self._broad_phase(local, search_margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:
             contacts = _empty_contacts(local, self.faces.shape[0], self.method)
@@ -378,17 +433,26 @@ class CoherentCollider:
             kind = torch.zeros(0, dtype=torch.int64, device=device)
             contacts.timings = {"broad": t1 - t0, "narrow": 0.0, "normals": 0.0}
         else:
-            bary, depths, grads = self._narrow_phase(local, candidates, kind, f_exact, margin, stats)
+            bary, depths, grads = self._narrow_phase(local, candidates, kind, f_exact, search_margin, stats)
             points = bary_to_points(local[self.faces[candidates]], bary)
-            keep = depths <= margin
+            keep = depths <= search_margin
             t2 = time.perf_counter()
             normals = self._normals(points[keep], grads[keep])
             answer_normals = torch.full_like(points, torch.nan)
             answer_normals[keep] = normals
+            rows = keep.nonzero().squeeze(-1)
+            out_bary, out_depths, out_points = bary[keep], depths[keep], points[keep]
+            if self.proxy is not None:  # the SDF itself at the faces the proxy kept: its points, depths and normals
+                out_bary, out_depths, grads_exact = self._exact_answers(local, candidates[rows], out_bary, out_points,
+                                                                        kind[rows], margin, stats)
+                contact = out_depths <= margin
+                rows, out_bary, out_depths = rows[contact], out_bary[contact], out_depths[contact]
+                out_points = bary_to_points(local[self.faces[candidates[rows]]], out_bary)
+                normals = F.normalize(grads_exact[contact], dim=-1)
             world = sdf_pose.to(local.dtype)
             contacts = Contacts(
-                points=transform_points(world, points[keep]), depths=depths[keep],
-                normals=transform_vectors(world, normals), triangles=candidates[keep], bary=bary[keep],
+                points=transform_points(world, out_points), depths=out_depths,
+                normals=transform_vectors(world, normals), triangles=candidates[rows], bary=out_bary,
                 n_triangles=int(self.faces.shape[0]), n_candidates=int(candidates.numel()), method=self.method,
                 timings={"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2},
             )
@@ -652,6 +716,57 @@ class CoherentCollider:
             depths[rows] = torch.where(better, f, f_low[rows])
             grads[rows] = torch.where(better.unsqueeze(-1), g, g_low[rows])
         return bary, depths, grads, screened
+
+    def _exact_answers(self, local: torch.Tensor, faces: torch.Tensor, bary: torch.Tensor, points: torch.Tensor,
+                       kind: torch.Tensor, margin: float, stats: CoherenceStats
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """With a proxy: the SDF's own answers on the faces ``faces`` (S,) whose proxy minimum came within the search
+        margin, from the proxy's answers ``bary`` (S, 3) at ``points`` (S, 3), answered as ``kind`` (S,) says (see the
+        class's ``proxy`` argument): bary (S, 3), the SDF's values (S,) and gradients (S, 3) there."""
+        tri = local[self.faces[faces]]
+        n = int(faces.shape[0])
+        out_bary, values, grads = bary.clone(), tri.new_empty((n,)), tri.new_empty((n, 3))
+        stats.exact_faces = n
+        if not n:
+            return out_bary, values, grads
+        exact = _CountingSDF(self.exact)
+        with torch.no_grad():
+            stored = self._exact_value[faces]
+            moved = (tri - self._exact_at[faces]).norm(dim=-1).amax(dim=-1)
+            kept = (kind == KEPT) & torch.isfinite(stored) & (moved <= self.reuse_distance)
+            k = kept.nonzero().squeeze(-1)
+            if k.numel():  # as the proxy's kept answers: the depth moved to first order along the normal
+                b, g = self._exact_bary[faces[k]], self._exact_grad[faces[k]]
+                shift = bary_to_points(tri[k], b) - bary_to_points(self._exact_at[faces[k]], b)
+                out_bary[k], grads[k] = b, g
+                values[k] = stored[k] + (shift * F.normalize(g, dim=-1)).sum(dim=-1)
+                stats.exact_kept = int(k.numel())
+            a = (~kept).nonzero().squeeze(-1)
+            if a.numel():
+                _, _, status = self.proxy.read(points[a])
+                f, g = _value_and_grad(exact, points[a])
+                gap = frank_wolfe_gap(tri[a], bary[a], g)
+                polish = ((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin)).nonzero().squeeze(-1)
+                b = bary[a]
+                if polish.numel():
+                    b[polish], f[polish], g[polish] = warm_step(exact, tri[a][polish], b[polish], (f[polish], g[polish]))
+                out = (status != 0).nonzero().squeeze(-1)  # 0: zoo.proxy.IN_BAND
+                if out.numel():  # out of the proxy's band: the method from scratch on the SDF
+                    stats.fallback = int(out.numel())
+                    unknown = torch.full(local.shape[:1], torch.nan, dtype=local.dtype, device=local.device)
+                    b_cold, f_cold = solve_candidates(self.exact, self.exact, local, self.faces[faces[a[out]]], unknown,
+                                                      margin, self.exact_method, self.iters, self.polish)
+                    lower = f_cold < f[out]
+                    rows = out[lower]
+                    if rows.numel():
+                        b[rows] = b_cold[lower]
+                        f[rows], g[rows] = _value_and_grad(exact, bary_to_points(tri[a[rows]], b[rows]))
+                out_bary[a], values[a], grads[a] = b, f, g
+                done = faces[a]
+                self._exact_bary[done], self._exact_value[done] = b.to(self._exact_bary), f.to(self._exact_value)
+                self._exact_grad[done], self._exact_at[done] = g.to(self._exact_grad), tri[a]
+        stats.exact_points = exact.queries
+        return out_bary, values, grads
 
     def _normals(self, points: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
         """Unit normals (K, 3) at the contacts (K, 3): the gradients a warm start took, queried elsewhere."""

@@ -40,6 +40,15 @@ def hub_cache_dir() -> Path | None:
     return None
 
 
+def zoo_cache_dir() -> Path:
+    """Where sdfzoo keeps what it derives and reuses across runs (baked SDF proxies, :mod:`zoo.proxy`):
+    ``ZOO_CACHE``, else ``$XDG_CACHE_HOME/sdfzoo``, else ``~/.cache/sdfzoo``; read at call time, as the Hub's."""
+    if os.environ.get("ZOO_CACHE"):
+        return Path(os.path.expandvars(os.environ["ZOO_CACHE"])).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME")
+    return (Path(os.path.expandvars(base)).expanduser() if base else Path.home() / ".cache") / "sdfzoo"
+
+
 def snapshot_dir(spec: str) -> Path:
     """The local folder of ``ORG/NAME@REVISION``: downloaded if needed, from the cache when offline."""
     repo_id, revision = parse_hub_spec(spec)

@@ -199,7 +199,8 @@ class StepStats:
 
 def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
            reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
-           surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE) -> World:
+           surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
+           proxy: bool = False) -> World:
     """sdfzoo's contacts for the SDF bodies of a user's ``mujoco.MjModel`` (see the module docstring).
 
     Args:
@@ -218,10 +219,13 @@ def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e
         include_geoms: names of geoms MuJoCo does not collide (contype = conaffinity = 0) that the SDF bodies
             collide with all the same (a flat mesh MuJoCo cannot take as a collision mesh).
         tolerance: m; how far a tessellated primitive's triangles may lie inside its true surface.
+        proxy: with ``coherence``, each model shape's mesh pairs cull and search on its narrow-band proxy (baked once at
+            ``margin``, or read from the cache: :func:`zoo.proxy.cached_proxy`), and the shape answers only the faces
+            that survive (``zoo.CoherentCollider``'s ``proxy``); other SDFs, and planes and spheres, are unchanged.
     """
     return World(model, bodies, method=method, margin=margin, coherence=coherence, reduce=reduce, refine=refine,
                  contype=contype, conaffinity=conaffinity, surfaces=surfaces, include_geoms=include_geoms,
-                 tolerance=tolerance)
+                 tolerance=tolerance, proxy=proxy)
 
 
 class World:
@@ -238,7 +242,8 @@ class World:
 
     def __init__(self, model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
                  reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
-                 surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE):
+                 surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
+                 proxy: bool = False):
         import mujoco
 
         if not isinstance(model, mujoco.MjModel):
@@ -249,6 +254,8 @@ class World:
         self.method = method
         self.margin = non_negative_float(margin, "margin")
         self.coherence, self.reduce, self.refine = bool(coherence), bool(reduce), bool(refine)
+        self.proxy = bool(proxy)
+        self.proxies: dict[str, object] = {}  # SDF body name -> its zoo.proxy.ProxySDF, where one is used
         self.tolerance = float(tolerance)
         include = {self._geom_id(name) for name in include_geoms}
         self.bodies = {name: self._sdf_body(name, sdf, (int(contype), int(conaffinity))) for name, sdf in bodies.items()}
@@ -332,9 +339,21 @@ class World:
             vertices, faces, origin = refined
             mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
             pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
-                                                 coherence=self.coherence)
+                                                 coherence=self.coherence, proxy=self._proxy_for(sdf_body))
             pair.refined = RefinedMesh(vertices, faces, origin, face_normals(vertices[faces]))
         return pair
+
+    def _proxy_for(self, sdf_body: SdfBody):
+        """The proxy ``sdf_body``'s mesh pairs search on (one per body, from the cache where baked before), or None:
+        without ``proxy`` or ``coherence``, and for SDFs that are not a model's shapes (analytic ones are cheap)."""
+        if not (self.proxy and self.coherence):
+            return None
+        if sdf_body.name not in self.proxies:
+            from ..proxy import cached_proxy, proxy_key
+
+            keyed = proxy_key(sdf_body.sdf, {}) is not None
+            self.proxies[sdf_body.name] = cached_proxy(sdf_body.sdf, margin=self.margin) if keyed else None
+        return self.proxies[sdf_body.name]
 
     def _method_for(self, sdf) -> str:
         if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
