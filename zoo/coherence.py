@@ -325,6 +325,9 @@ class CoherentCollider:
             that moved less than ``reuse_distance``; a face whose proxy minimiser lies out of the proxy's band is
             solved from scratch by ``method`` on the SDF. Every contact's point, depth and normal are the SDF's.
             Needs ``coherence``; not with "voxel-fw".
+        deferred: with ``proxy``, a call returns the proxy's contacts (the faces within the margin plus the error bound,
+            the proxy's points, depths and normals), and :meth:`exact_contacts` gives the SDF's own for the rows the
+            caller keeps (a simulation keeps a few per patch: ``zoo.sim`` asks the SDF for those only).
 
     Call it with the poses of each step: ``contacts = collider(sdf_pose, mesh_pose)`` (4x4 world-from-object,
     None is the identity). ``stats`` sums :class:`CoherenceStats` over all calls, ``last_stats`` holds the
@@ -334,7 +337,7 @@ class CoherentCollider:
     def __init__(self, sdf, mesh, margin: float = 1e-3, method: str = "fw", *, coherence: bool = True,
                  warm_start: bool = True, iters: int | None = None,
                  refine: int = 0, voxel_resolution=256, polish: bool = True, lipschitz: float | None = None,
-                 reuse_distance: float | None = None, proxy=None):
+                 reuse_distance: float | None = None, proxy=None, deferred: bool = False):
         check_sdf(sdf)
         self.sdf = sdf
         self.method = _method(method)
@@ -356,6 +359,8 @@ class CoherentCollider:
         reuse = REUSE_FRACTION * self.margin if reuse_distance is None else non_negative_float(reuse_distance, "reuse_distance")
         self.reuse_distance = reuse if self.warm_start else 0.0
         self._use_proxy(proxy)
+        self.deferred = bool(deferred) and self.proxy is not None
+        self._reported_method = self.method if self.proxy is None else f"proxy+{self.exact_method}"
         self.vertices, self.faces = _mesh_arrays(mesh)
         corners = self.vertices[self.faces].to(torch.float64)  # (F, 3, 3), the mesh's frame
         self._centroid = corners.mean(dim=1)  # (F, 3)
@@ -384,6 +389,7 @@ class CoherentCollider:
         self._exact_value = torch.full(f.shape[:1], torch.nan, dtype=v.dtype, device=v.device)  # (F,) NaN: none
         self._exact_grad = v.new_zeros((f.shape[0], 3))  # (F, 3)
         self._exact_at = v.new_zeros((f.shape[0], 3, 3))  # (F, 3, 3) SDF frame
+        self._pending = None  # deferred: the last call's proxy contacts (exact_contacts answers them)
 
     def _use_proxy(self, proxy) -> None:
         """Set up the search on a proxy (see the class's ``proxy`` argument): ``self.sdf`` becomes the proxy and
@@ -421,6 +427,7 @@ class CoherentCollider:
         sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(device)
         mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(device)
         stats = CoherenceStats(steps=1)
+        self._pending = None
         t0 = time.perf_counter()
         relative = invert_pose(sdf_pose) @ mesh_pose
         self._record_pose(relative)
@@ -442,24 +449,48 @@ class CoherentCollider:
             answer_normals[keep] = normals
             rows = keep.nonzero().squeeze(-1)
             out_bary, out_depths, out_points = bary[keep], depths[keep], points[keep]
-            if self.proxy is not None:  # the SDF itself at the faces the proxy kept: its points, depths and normals
-                out_bary, out_depths, grads_exact = self._exact_answers(local, candidates[rows], out_bary, out_points,
-                                                                        kind[rows], margin, stats)
-                contact = out_depths <= margin
-                rows, out_bary, out_depths = rows[contact], out_bary[contact], out_depths[contact]
-                out_points = bary_to_points(local[self.faces[candidates[rows]]], out_bary)
-                normals = F.normalize(grads_exact[contact], dim=-1)
+            if self.proxy is not None and self.deferred:  # the proxy's contacts; exact_contacts answers the rows kept
+                self._pending = (local, sdf_pose, candidates[rows], kind[rows], out_bary, out_points, margin)
+            elif self.proxy is not None:  # the SDF itself at the faces the proxy kept: its points, depths and normals
+                out_bary, out_depths, out_points, normals, contact = self._exact_rows(
+                    local, candidates[rows], kind[rows], out_bary, out_points, margin, stats)
+                rows = rows[contact]
             world = sdf_pose.to(local.dtype)
             contacts = Contacts(
                 points=transform_points(world, out_points), depths=out_depths,
                 normals=transform_vectors(world, normals), triangles=candidates[rows], bary=out_bary,
-                n_triangles=int(self.faces.shape[0]), n_candidates=int(candidates.numel()), method=self.method,
+                n_triangles=int(self.faces.shape[0]), n_candidates=int(candidates.numel()), method=self._reported_method,
                 timings={"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2},
             )
         self._remember(local, candidates, bary, depths, answer_normals, kind == KEPT)
         self.last_stats = stats
         self.stats.add(stats)
         return contacts
+
+    def exact_contacts(self, rows) -> Contacts:
+        """With ``proxy`` and ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's contacts
+        (which were the proxy's), as a non-deferred call gives them (world frame, triangles indexing the collider's
+        mesh): the rows whose SDF depth is within that call's margin, in the order given."""
+        if self._pending is None:
+            raise InputError("exact_contacts answers the last call's proxy contacts: call the collider (proxy=, deferred=True) first")
+        local, sdf_pose, faces, kind, bary, points, margin = self._pending
+        rows = torch.as_tensor(rows, dtype=torch.int64, device=faces.device).reshape(-1)
+        stats = CoherenceStats()
+        b, d, p, n, contact = self._exact_rows(local, faces[rows], kind[rows], bary[rows], points[rows], margin, stats)
+        self.last_stats.add(stats)
+        self.stats.add(stats)
+        world = sdf_pose.to(local.dtype)
+        return Contacts(points=transform_points(world, p), depths=d, normals=transform_vectors(world, n),
+                        triangles=faces[rows][contact], bary=b, n_triangles=int(self.faces.shape[0]),
+                        n_candidates=int(rows.numel()), method=self._reported_method)
+
+    def _exact_rows(self, local, faces, kind, bary, points, margin, stats):
+        """:meth:`_exact_answers` on the faces ``faces`` (S,), less those above ``margin``: bary (K, 3), depths (K,), points
+        (K, 3) and unit normals (K, 3), SDF frame, and which of the S rows they are ((S,) bool)."""
+        b, f, g = self._exact_answers(local, faces, bary, points, kind, margin, stats)
+        contact = f <= margin
+        b = b[contact]
+        return b, f[contact], bary_to_points(local[self.faces[faces[contact]]], b), F.normalize(g[contact], dim=-1), contact
 
     # -- broad phase ----------------------------------------------------------------------------
 
@@ -726,7 +757,7 @@ class CoherentCollider:
         tri = local[self.faces[faces]]
         n = int(faces.shape[0])
         out_bary, values, grads = bary.clone(), tri.new_empty((n,)), tri.new_empty((n, 3))
-        stats.exact_faces = n
+        stats.exact_faces += n
         if not n:
             return out_bary, values, grads
         exact = _CountingSDF(self.exact)
@@ -740,7 +771,7 @@ class CoherentCollider:
                 shift = bary_to_points(tri[k], b) - bary_to_points(self._exact_at[faces[k]], b)
                 out_bary[k], grads[k] = b, g
                 values[k] = stored[k] + (shift * F.normalize(g, dim=-1)).sum(dim=-1)
-                stats.exact_kept = int(k.numel())
+                stats.exact_kept += int(k.numel())
             a = (~kept).nonzero().squeeze(-1)
             if a.numel():
                 _, _, status = self.proxy.read(points[a])
@@ -752,7 +783,7 @@ class CoherentCollider:
                     b[polish], f[polish], g[polish] = warm_step(exact, tri[a][polish], b[polish], (f[polish], g[polish]))
                 out = (status != 0).nonzero().squeeze(-1)  # 0: zoo.proxy.IN_BAND
                 if out.numel():  # out of the proxy's band: the method from scratch on the SDF
-                    stats.fallback = int(out.numel())
+                    stats.fallback += int(out.numel())
                     unknown = torch.full(local.shape[:1], torch.nan, dtype=local.dtype, device=local.device)
                     b_cold, f_cold = solve_candidates(self.exact, self.exact, local, self.faces[faces[a[out]]], unknown,
                                                       margin, self.exact_method, self.iters, self.polish)
@@ -765,7 +796,7 @@ class CoherentCollider:
                 done = faces[a]
                 self._exact_bary[done], self._exact_value[done] = b.to(self._exact_bary), f.to(self._exact_value)
                 self._exact_grad[done], self._exact_at[done] = g.to(self._exact_grad), tri[a]
-        stats.exact_points = exact.queries
+        stats.exact_points += exact.queries
         return out_bary, values, grads
 
     def _normals(self, points: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:

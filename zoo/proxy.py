@@ -186,7 +186,7 @@ class ProxySDF:
         cell = np.floor(u).astype(np.int64)
         inside = ((cell >= 0) & (cell <= self._last_cell_np)).all(axis=-1)
         np.clip(cell, 0, self._last_cell_np, out=cell)
-        f = np.clip(u - cell, 0, 1)
+        f = np.clip(u - cell.astype(dtype), 0, 1)
         brick_flat = (cell >> 3) @ self._brick_strides_np
         row = self._brick_of_np[brick_flat]
         local = cell & (BRICK - 1)
@@ -205,7 +205,7 @@ class ProxySDF:
         grads *= dtype.type(1 / self.spacing)
         if not status.any() and inside.all():
             return values, grads, status
-        out = status != IN_BAND
+        out = (status != IN_BAND) | ~inside
         coarse = self._coarse_value_np[brick_flat].astype(dtype)
         # the brick centre's bound f(c) - L |p - c|, valid at every point of the brick, and at least the band in an
         # ABOVE cell (a block holding it was dropped with f above the band)

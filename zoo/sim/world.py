@@ -339,7 +339,7 @@ class World:
             vertices, faces, origin = refined
             mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
             pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
-                                                 coherence=self.coherence, proxy=self._proxy_for(sdf_body))
+                                                 coherence=self.coherence, proxy=self._proxy_for(sdf_body), deferred=True)
             pair.refined = RefinedMesh(vertices, faces, origin, face_normals(vertices[faces]))
         return pair
 
@@ -489,6 +489,8 @@ class World:
                 continue
             contacts, keep, arrays = found
             stats.raw_contacts += len(contacts)
+            if len(keep) and getattr(pair.collider, "deferred", False):  # the proxy chose them: the SDF answers them
+                contacts, keep, arrays = self._exact(pair, keep)
             if not len(keep):
                 continue
             r = contact_rows(arrays, keep, (pair.sdf_body.geom, pair.geom))
@@ -559,6 +561,14 @@ class World:
             merge = MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
             keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
         return contacts, keep, (points, depths, normals)
+
+    @staticmethod
+    def _exact(pair: Pair, keep: np.ndarray):
+        """The SDF's own contacts at the rows ``keep`` of the pair's last (proxy) contacts: (contacts, every row of them,
+        their :func:`as_numpy` arrays); the rows whose SDF depth is beyond the margin are dropped."""
+        contacts = pair.collider.exact_contacts(torch.as_tensor(keep))
+        contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]
+        return contacts, np.arange(len(contacts)), as_numpy(contacts)
 
     def _collide_refining_near(self, pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float):
         """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a pair whose mesh is refined near
