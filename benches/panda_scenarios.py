@@ -26,8 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SCENES = ROOT / "scenes"
+from zoo.resources import bundled
+
+SCENES = bundled("scenes")  # the clone's scenes/, or the wheel's copy
 PANDA_XML = "panda.xml"
 ARM = [f"robot:panda0_joint{i}" for i in range(1, 8)]
 ARM_ACTUATORS = [f"panda0_joint{i}" for i in range(1, 8)]
@@ -451,8 +452,6 @@ def finger_contacts(sim, body: str) -> int:
 
 def run(name: str, seconds: float | None = None, video: Path | None = None, progress: bool = False) -> dict:
     """Run a Panda scene and check it (see :func:`check`); with ``video``, render an MP4 from its camera."""
-    import time
-
     import zoo.sim
 
     path = SCENES / f"{name}.toml"
@@ -465,7 +464,7 @@ def run(name: str, seconds: float | None = None, video: Path | None = None, prog
         from zoo.sim.render import VideoRecorder
 
         recorder = VideoRecorder(sim.model, camera=sim.camera, width=640, height=480)
-    trace, start = [], time.perf_counter()
+    trace = []
     steps = int(round(seconds / sim.dt))
     every = max(1, int(round(0.04 / sim.dt)))
     for i in range(steps):
@@ -477,19 +476,30 @@ def run(name: str, seconds: float | None = None, video: Path | None = None, prog
             if progress:
                 print(f"t={sim.time:.2f} {obj} at {sim.pose(obj)[:3, 3].round(3).tolist()} contacts {sim.log[-1].contacts} "
                       f"fingers {trace[-1]['fingers']} step {sim.log[-1].step_s * 1e3:.1f} ms", flush=True)
-    wall = time.perf_counter() - start
     if recorder is not None:
         recorder.write(video, fps=25)
     result = check(sim, name, trace)
-    steps_s = np.array([r.step_s for r in sim.log])
-    contacts = np.array([r.contacts for r in sim.log])
-    result.update({
-        "scene": name, "seconds": sim.time, "steps": len(sim.log), "wall_s": wall,
-        "step_ms_mean": 1e3 * float(steps_s.mean()), "step_ms_p95": 1e3 * float(np.percentile(steps_s, 95)),
-        "contacts_mean": float(contacts.mean()), "contacts_max": int(contacts.max()),
-        "max_penetration_mm": 1e3 * max(r.max_penetration for r in sim.log), "warnings": sim.warnings[:10],
-    })
+    log = sim.log
+    result.update(step_metrics(np.array([r.step_s for r in log]), np.array([r.contacts for r in log]),
+                               np.array([r.max_penetration for r in log]), np.array([r.collide_s for r in log])))
+    result.update({"scene": name, "method": sim.method + ("+coherence" if sim.coherence else ""),
+                   "seconds": sim.time, "warnings": sim.warnings[:10]})
     return result
+
+
+def step_metrics(step_s: np.ndarray, contacts: np.ndarray, penetration: np.ndarray, collide_s: np.ndarray | None = None
+                 ) -> dict:
+    """A run's per-step figures from its steps' arrays (S,): time per step (s), the object's contacts, its deepest
+    penetration (m) and the time spent finding contacts (s); in ``zoo bench --sim``'s keys."""
+    pct = lambda x, scale: {"median": scale * float(np.median(x)), "p90": scale * float(np.percentile(x, 90)),  # noqa: E731
+                            "p99": scale * float(np.percentile(x, 99)), "max": scale * float(np.max(x))}
+    out = {"steps": int(len(step_s)), "wall_s": float(step_s.sum()), "steps_per_s": len(step_s) / float(step_s.sum()),
+           "step_ms": pct(step_s, 1e3), "step_ms_mean": 1e3 * float(step_s.mean()),
+           "contacts_per_step": float(contacts.mean()), "contacts_max": int(contacts.max()),
+           "penetration_mm": pct(penetration, 1e3), "max_penetration_mm": 1e3 * float(penetration.max())}
+    if collide_s is not None:
+        out["collide_ms"] = pct(collide_s, 1e3)
+    return out
 
 
 def check(sim, name: str, trace: list[dict]) -> dict:

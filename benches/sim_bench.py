@@ -18,7 +18,10 @@ bodies penetrate; so the deepest penetration is also measured on one yardstick f
 
 It also runs issue 25's three-way check on ``mug-hanging`` (the mug released 2 mm above where it
 hangs): the default against amortized from scratch and FW-10, per-step time ratios and how far apart
-the three trajectories end. Writes ``sim.json`` and ``sim.png`` (time per step against penetration).
+the three trajectories end. Then the four Panda scenes (:mod:`benches.panda_scenarios`: the Panda hangs a mug on
+the rack and places a bottle in a holder, seen and unseen shapes), each run whole and held to its check, with sdfzoo's
+default contacts and with MuJoCo's on a CoACD decomposition of the object and the rack or holder
+(:mod:`benches.panda_coacd`). Writes ``sim.json`` and ``sim.png`` (time per step against penetration).
 
     python -m sdfzoo.benches.sim_bench --out out/bench --seconds 0.2          # or: zoo bench --sim
 """
@@ -52,6 +55,10 @@ METHODS = {
     "fw-10": {"method": "fw", "coherence": False},
     "voxel-fw": {"method": "voxel-fw", "coherence": False},
 }
+# the Panda scenes (benches.panda_scenarios), each run whole (its check is 1 s after the release), sdfzoo's default
+# beside MuJoCo's own contacts on CoACD pieces (benches.panda_coacd)
+PANDA_SCENES = ("panda-bottle-holder", "panda-bottle-holder-unseen", "panda-mug-rack", "panda-mug-rack-unseen")
+PANDA_METHODS = ("amortized+coherence", "coacd-native")
 REFERENCES = {"mujoco-sdf-plugin": ("bolt-nut", "gear-gear"), "coacd-native": ("mug-rack", "bottle-holder", "gear-gear", "bolt-nut")}
 # issue 25's bars
 COLLIDE_MS_MAX = 10.0  # median collision time per step with coherence, Mug-Rack and Bottle-Holder
@@ -125,6 +132,18 @@ def reference(kind: str, scenario: str, seconds: float, dt: float = 0.002) -> di
 
     run = {"mujoco-sdf-plugin": sim_references.mujoco_sdf_plugin, "coacd-native": sim_references.coacd_native}[kind]
     return run(scenario, seconds, dt)
+
+
+def panda(scene: str, method: str) -> dict:
+    """One Panda scene, run whole, with sdfzoo's default contacts or MuJoCo's on CoACD pieces; its check's verdict
+    and figures."""
+    if method == "coacd-native":
+        from sdfzoo.benches.panda_coacd import run
+    else:
+        from sdfzoo.benches.panda_scenarios import run
+    row = run(scene)
+    return {k: v for k, v in row.items() if k not in ("scene", "decomposition")} | {
+        "decomposition": {b: {k: d[k] for k in ("mesh", "pieces", "seconds")} for b, d in row.get("decomposition", {}).items()}}
 
 
 def run_isolated(args: list[str], timeout: float) -> dict:
@@ -205,8 +224,9 @@ def plot(rows: list[dict], path: Path) -> None:
 
 
 def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, methods=None, references: bool = True,
-                      progress=print, timeout: float = 1800, threads: int | None = None) -> Path:
-    """Every (scenario, method) and reference, each in its own process; writes ``out_dir/sim.json`` and ``sim.png``.
+                      progress=print, timeout: float = 1800, threads: int | None = None, panda_scenes=PANDA_SCENES) -> Path:
+    """Every (scenario, method) and reference, each in its own process, then the Panda scenes ``panda_scenes`` (whole
+    runs: ``seconds`` does not apply) with sdfzoo and with CoACD + MuJoCo; writes ``out_dir/sim.json`` and ``sim.png``.
     ``threads``: torch CPU threads of every run (None: torch's default, which ``OMP_NUM_THREADS`` sets)."""
     from sdfzoo.benches.sim_scenarios import require_meshes
     from sdfzoo.benches.solvers import machine_info
@@ -231,6 +251,14 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
             timing = ["--seconds", str(seconds)] + (["--threads", str(threads)] if threads else [])
             rows.append({"scenario": scenario, "method": method, **run_isolated([*args, *timing], timeout)})
             progress(f"  {_summary(rows[-1])}")
+            write()
+        plot(rows, out_dir / "sim.png")
+    for scene in panda_scenes or ():
+        for method in PANDA_METHODS:
+            progress(f"{scene}: {method} (the whole run) ...")
+            threading = ["--threads", str(threads)] if threads else []
+            rows.append({"scenario": scene, "method": method, **run_isolated(["--panda", scene, method, *threading], timeout)})
+            progress(f"  {_summary(rows[-1])}, check {'passed' if rows[-1].get('passed') else 'FAILED'}")
             write()
         plot(rows, out_dir / "sim.png")
     return path
@@ -275,19 +303,24 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads; 0 keeps torch's default")
     parser.add_argument("--one", nargs=2, metavar=("SCENARIO", "METHOD"), help="one run, JSON on stdout (internal)")
     parser.add_argument("--reference", nargs=2, metavar=("KIND", "SCENARIO"), help="one reference run, JSON on stdout (internal)")
+    parser.add_argument("--panda", nargs=2, metavar=("SCENE", "METHOD"), help="one Panda run, JSON on stdout (internal)")
+    parser.add_argument("--no-panda", action="store_true", help="leave out the Panda scenes")
     args = parser.parse_args(argv)
     import torch
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.one or args.reference:
-        row = simulate(*args.one, args.seconds) if args.one else reference(*args.reference, args.seconds)
+    if args.one or args.reference or args.panda:
+        if args.panda:
+            row = panda(*args.panda)
+        else:
+            row = simulate(*args.one, args.seconds) if args.one else reference(*args.reference, args.seconds)
         row["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
         row["threads"] = torch.get_num_threads()
         print(json.dumps(row, default=float))
         return
     path = run_sim_benchmark(args.out, args.seconds, args.scenario, args.method, references=not args.no_references,
-                             threads=args.threads or None)
+                             threads=args.threads or None, panda_scenes=() if args.no_panda else PANDA_SCENES)
     report = json.loads(path.read_text())
     for row in format_table(report):
         print(" | ".join(row))

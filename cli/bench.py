@@ -33,6 +33,7 @@ class BenchOptions:
     max_shapes: int | None = None  # --detector: seen shapes measured
     n_per_shape: int = 200  # --detector: bench triangles per shape
     sim_seconds: float = 0.2  # --sim: simulated seconds per run
+    panda: bool = True  # --sim: the Panda scenes too
 
 
 def _table(title: str, header: list[str], rows: list[list[str]]):
@@ -136,11 +137,11 @@ def _run_sim(opts: BenchOptions) -> None:
     from zoo.errors import require
 
     require("mujoco", "sim")
-    from sdfzoo.benches.sim_bench import TABLE_HEADER, format_table, run_sim_benchmark
+    from sdfzoo.benches.sim_bench import PANDA_SCENES, TABLE_HEADER, format_table, run_sim_benchmark
 
     console = Console(width=max(Console().width, 150))
     path = run_sim_benchmark(opts.out, seconds=opts.sim_seconds, progress=console.print if opts.progress else (lambda *_: None),
-                             threads=opts.threads)
+                             threads=opts.threads, panda_scenes=PANDA_SCENES if opts.panda else ())
     report = json.loads(path.read_text())
     machine = report["machine"]
     table = _table(f"simulations, {report['seconds']} s each (torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})",
@@ -173,12 +174,14 @@ def bench(
     sim: bool = typer.Option(False, "--sim", help="The scenarios simulated (needs $ZOO_DATA): steps/s, time per step, contacts, "
                              "penetration and memory per contact method, MuJoCo's SDF plugin and CoACD references; JSON and a PNG."),
     sim_seconds: float = typer.Option(0.2, "--sim-seconds", min=0.002, help="With --sim: simulated seconds per run."),
+    panda: bool = typer.Option(True, "--panda/--no-panda", help="With --sim: the four Panda scenes too, each run whole "
+                               "(minutes each), with sdfzoo's contacts and with MuJoCo's on CoACD pieces."),
 ):
     """Measure error against run time and write the results as JSON (solver section by default)."""
     chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None, "sim": sim}.items() if on]
     chosen = chosen or [DEFAULT_SECTION]
     opts = BenchOptions(out=out, triangles=triangles, seed=seed, threads=threads or None, progress=not no_progress,
                         scenes=scene or None, model=detector, unseen_category=unseen_category, max_shapes=max_shapes,
-                        n_per_shape=n_per_shape, sim_seconds=sim_seconds)
+                        n_per_shape=n_per_shape, sim_seconds=sim_seconds, panda=panda)
     for name in chosen:
         _SECTIONS[name](opts)

@@ -94,11 +94,12 @@ def test_the_wheel_installs_only_the_projects_own_top_level_names(wheel):
 
 SIM_BENCH_FILES = """
 import pathlib, zoo
-from sdfzoo.benches import sim_bench, sim_references, sim_scenarios
+from sdfzoo.benches import panda_scenarios, sim_bench, sim_references, sim_scenarios
 package = pathlib.Path(zoo.__file__).parent
 scenes = [sim_scenarios.SCENES / s.scene for s in sim_scenarios.SCENARIOS.values()]
 scenes += [sim_references.SCENES / name for name in sim_references.SCENARIOS.values()]
 scenes += [sim_scenarios.SCENES / name for name in sim_bench.SCENES.values()]
+scenes += [panda_scenarios.SCENES / f"{name}.toml" for name in sim_bench.PANDA_SCENES] + [panda_scenarios.SCENES / "panda.xml"]
 assert all(path.is_file() and path.is_relative_to(package) for path in scenes), scenes
 assert not sim_references.CACHE.resolve().is_relative_to(package.parent), sim_references.CACHE.resolve()
 print("ok", len(scenes))
