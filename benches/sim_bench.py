@@ -232,7 +232,7 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
     from sdfzoo.benches.solvers import machine_info
 
     require_meshes()
-    scenarios = list(scenarios or SCENES)
+    scenarios = list(SCENES if scenarios is None else scenarios)
     rows = []
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "sim.json"
@@ -305,6 +305,7 @@ def main(argv=None) -> None:
     parser.add_argument("--reference", nargs=2, metavar=("KIND", "SCENARIO"), help="one reference run, JSON on stdout (internal)")
     parser.add_argument("--panda", nargs=2, metavar=("SCENE", "METHOD"), help="one Panda run, JSON on stdout (internal)")
     parser.add_argument("--no-panda", action="store_true", help="leave out the Panda scenes")
+    parser.add_argument("--panda-only", action="store_true", help="the Panda scenes only")
     args = parser.parse_args(argv)
     import torch
 
@@ -319,7 +320,7 @@ def main(argv=None) -> None:
         row["threads"] = torch.get_num_threads()
         print(json.dumps(row, default=float))
         return
-    path = run_sim_benchmark(args.out, args.seconds, args.scenario, args.method, references=not args.no_references,
+    path = run_sim_benchmark(args.out, args.seconds, [] if args.panda_only else args.scenario, args.method, references=not args.no_references,
                              threads=args.threads or None, panda_scenes=() if args.no_panda else PANDA_SCENES)
     report = json.loads(path.read_text())
     for row in format_table(report):

@@ -88,3 +88,45 @@ def test_panda_scenario_passes_its_check(meshes, scene):
         assert result["hole_to_peg_axis_m"] < result["hole_half_size_m"] and 0 < result["along_peg_m"] < 0.174, result
     assert result["speed_end"] < 0.02, result
     assert result["passed"], result
+
+
+@needs_panda
+@pytest.mark.parametrize("scene", SCENES)
+def test_the_coacd_reference_cuts_the_mesh_the_neuralsdf_was_fitted_to(meshes, scene):
+    """`zoo bench --sim`'s CoACD reference (benches/panda_coacd.py) gives the object the mesh its NeuralSDF came from,
+    scaled as the scene scales the SDF: the SDF is near 0 on the mesh's vertices (a wrong mesh, frame or scale is
+    centimetres off)."""
+    import torch
+
+    from sdfzoo.benches.panda_coacd import object_mesh
+    from sdfzoo.benches.panda_scenarios import load_sdf
+    from zoo.scenes import read_scene
+
+    spec = read_scene(ROOT / "scenes" / f"{scene}.toml")[0]["bodies"][0]["sdf"]
+    vertices, faces, digest, label = object_mesh(spec)
+    sdf = load_sdf(spec)
+    with torch.no_grad():
+        f = np.abs(np.asarray(sdf(torch.as_tensor(vertices[::max(1, len(vertices) // 2000)]))))
+    size = float(np.ptp(vertices, axis=0).max())
+    assert 0.05 < size < 0.3, (label, size)  # metres, a mug or an 18 cm bottle
+    assert np.median(f) < 2e-3 and np.percentile(f, 90) < 5e-3, (label, np.median(f), np.percentile(f, 90))
+
+
+@pytest.mark.slow
+@needs_panda
+def test_the_coacd_reference_is_the_same_panda_scene_on_convex_pieces(meshes):
+    """The CoACD reference keeps the scene's robot, actuators, initial posture, object mass and waypoints; only the
+    object's and the holder's geometry are MuJoCo's convex pieces."""
+    pytest.importorskip("coacd")
+    import zoo.sim
+    from sdfzoo.benches.panda_coacd import native_model
+
+    model, data, scene, info = native_model("panda-bottle-holder")
+    sim = zoo.sim.load_scene(ROOT / "scenes" / "panda-bottle-holder.toml")
+    sim.build()
+    assert [model.actuator(i).name for i in range(model.nu)] == [sim.model.actuator(i).name for i in range(sim.model.nu)]
+    assert np.allclose(data.qpos[:9], sim.data.qpos[:9])
+    assert model.body_mass[model.body("bottle").id] == pytest.approx(sim.model.body_mass[sim.model.body("bottle").id])
+    bottle = model.body("bottle").id
+    assert int((model.geom_bodyid == bottle).sum()) == info["bottle"]["pieces"] > 0
+    assert model.opt.timestep == sim.model.opt.timestep
