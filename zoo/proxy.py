@@ -184,9 +184,15 @@ class ProxySDF:
         dtype = p.dtype
         u = (p - self._lo_np.astype(dtype)) * dtype.type(1 / self.spacing)
         cell = np.floor(u).astype(np.int64)
-        inside = ((cell >= 0) & (cell <= self._last_cell_np)).all(axis=-1)
-        np.clip(cell, 0, self._last_cell_np, out=cell)
-        f = np.clip(u - cell.astype(dtype), 0, 1)
+        all_inside = bool(cell.min() >= 0) and bool((cell <= self._last_cell_np).all())  # one test for the usual case
+        if all_inside:
+            inside = np.ones(p.shape[0], dtype=bool)
+        else:
+            inside = ((cell >= 0) & (cell <= self._last_cell_np)).all(axis=-1)
+            np.clip(cell, 0, self._last_cell_np, out=cell)
+        f = u - cell.astype(dtype)
+        if not all_inside:
+            np.clip(f, 0, 1, out=f)
         brick_flat = (cell >> 3) @ self._brick_strides_np
         row = self._brick_of_np[brick_flat]
         local = cell & (BRICK - 1)
@@ -203,7 +209,7 @@ class ProxySDF:
         values = cy[:, 0] * gx + cy[:, 1] * fx
         grads = np.stack([cy[:, 1] - cy[:, 0], dy[:, 0] * gx + dy[:, 1] * fx, dzy[:, 0] * gx + dzy[:, 1] * fx], axis=-1)
         grads *= dtype.type(1 / self.spacing)
-        if not status.any() and inside.all():
+        if all_inside and not status.any():
             return values, grads, status
         out = (status != IN_BAND) | ~inside
         coarse = self._coarse_value_np[brick_flat].astype(dtype)
@@ -213,7 +219,7 @@ class ProxySDF:
         coarse = coarse - dtype.type(self.lipschitz) * np.linalg.norm(p - centre, axis=-1)
         values = np.where(out, np.where(status == ABOVE, np.maximum(coarse, dtype.type(self.band)), coarse), values)
         grads = np.where(out[:, None], self._coarse_grad_np[brick_flat].astype(dtype), grads)
-        if not inside.all():  # outside the region: band plus the distance to it, pointing away
+        if not all_inside:  # outside the region: band plus the distance to it, pointing away
             clamped = np.clip(p, self._lo_np.astype(dtype), self._hi_np.astype(dtype))
             away = p - clamped
             gap = np.linalg.norm(away, axis=-1)
@@ -468,12 +474,13 @@ def load_proxy(directory, key: str | None = None) -> ProxySDF:
 
 
 def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: float | None = None,
-                 lipschitz: float | None = None, cache: bool | str | Path = True, progress: bool | None = None) -> ProxySDF:
+                 lipschitz: float | None = None, cache: bool | str | Path = True, progress: bool | None = None,
+                 rebake: bool = False) -> ProxySDF:
     """The proxy of ``sdf`` (as :func:`bake_proxy`'s arguments), from the cache when baked before.
 
     ``cache``: True uses ``zoo.hub.zoo_cache_dir() / "proxies"``, a path another folder, False none. Only a model's
     shapes are cached (:func:`proxy_key`); others are baked every time. A cached proxy that fails its checksum or
-    cannot be read is refused with a warning and baked again."""
+    cannot be read is refused with a warning and baked again. ``rebake``: bake it anew and replace the cached one."""
     from .coherence import motion_lipschitz
     from .hub import zoo_cache_dir
 
@@ -488,7 +495,7 @@ def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: 
     if key is not None:
         root = zoo_cache_dir() / "proxies" if cache is True else Path(cache)
         folder = root / f"{getattr(sdf, 'name', 'sdf')}-{key[:24]}"
-        if (folder / PROXY_FILE).exists():
+        if (folder / PROXY_FILE).exists() and not rebake:
             try:
                 return load_proxy(folder, key)
             except (ChecksumError, DataError) as exc:
