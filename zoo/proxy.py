@@ -293,14 +293,7 @@ def bake_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: fl
 
         def evaluate(cells: torch.Tensor, size: float) -> torch.Tensor:
             """f (N,) float64 at the centres of the blocks of ``size`` cells whose first cells are ``cells`` (N, 3)."""
-            centres = lo + (cells.double() + size / 2) * h
-            out = torch.empty(cells.shape[0], dtype=torch.float64)
-            with torch.no_grad():
-                for start in range(0, cells.shape[0], CHUNK):  # a loop over chunks, not points
-                    chunk = centres[start:start + CHUNK]
-                    out[start:start + CHUNK] = torch.as_tensor(sdf(chunk.float())).reshape(-1).double()
-                    bar.advance(task, chunk.shape[0])
-            return out
+            return _evaluate(sdf, lo + (cells.double() + size / 2) * h, bar, task)
 
         grid = torch.stack(torch.meshgrid(*[torch.arange(n) for n in nb], indexing="ij"), dim=-1).reshape(-1, 3)
         f0 = evaluate(grid * BRICK, BRICK)
@@ -355,15 +348,20 @@ def _evaluate_nodes(sdf, keys: torch.Tensor, nb: list[int], lo: torch.Tensor, h:
     """f (N,) float64 at the grid nodes with flat keys ``keys`` (N,)."""
     ny, nz = nb[1] * BRICK + 1, nb[2] * BRICK + 1
     ijk = torch.stack([keys // (ny * nz), (keys // nz) % ny, keys % nz], dim=-1)
-    points = lo + ijk.double() * h
-    out = torch.empty(keys.shape[0], dtype=torch.float64)
+    out = _evaluate(sdf, lo + ijk.double() * h, bar, task)
+    if not bool(torch.isfinite(out).all()):
+        raise InputError("the SDF returned NaN or Inf near its surface; check its evaluation")
+    return out
+
+
+def _evaluate(sdf, points: torch.Tensor, bar, task) -> torch.Tensor:
+    """f (N,) float64 at ``points`` (N, 3), asked in float32 ``CHUNK`` points a call, advancing the bar's task."""
+    out = torch.empty(points.shape[0], dtype=torch.float64)
     with torch.no_grad():
-        for start in range(0, keys.shape[0], CHUNK):  # a loop over chunks, not points
+        for start in range(0, points.shape[0], CHUNK):  # a loop over chunks, not points
             chunk = points[start:start + CHUNK]
             out[start:start + CHUNK] = torch.as_tensor(sdf(chunk.float())).reshape(-1).double()
             bar.advance(task, chunk.shape[0])
-    if not bool(torch.isfinite(out).all()):
-        raise InputError("the SDF returned NaN or Inf near its surface; check its evaluation")
     return out
 
 
