@@ -148,6 +148,7 @@ class Plan:
     keyframes: list = field(default_factory=list)
     seconds: float = 0.0
     check: dict = field(default_factory=dict)
+    camera: str = "front"  # scenes/panda.xml's camera the video is rendered from
 
 
 def interpolate(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
@@ -323,7 +324,7 @@ def mug_plan(name: str, sdf_spec: dict, label: str, mass: float = 0.25, closed: 
                 body={"name": "mug", "sdf": sdf_spec, "mass": mass, "joint": "free", "pose": stand.tolist()},
                 extra_bodies=[{"name": "rack", "mesh": {"file": "rack/ndf_simple_rack.obj"}, "joint": "fixed",
                                "pose": RACK_POSE}],
-                keyframes=keys, seconds=7.1 + s,
+                keyframes=keys, seconds=7.1 + s, camera="rack",  # from beside the rack: the hang is behind the post from the front
                 check={"kind": "mug-on-peg", "release_time": 6.1 + s})
 
 
@@ -402,7 +403,7 @@ def scene_text(plan: Plan, entries: list[dict], q0: np.ndarray) -> str:
         "# Planned by benches/panda_scenarios.py (damped least-squares IK on scenes/panda.xml, gravity feed-forward);",
         "# re-plan: ZOO_DATA=../shared/meshes python -m sdfzoo.benches.panda_scenarios --write. Check: tests/test_sim_panda.py.",
         f"name = {json.dumps(plan.name)}", 'method = "amortized"', "margin = 0.001", f"mjcf = {json.dumps(PANDA_XML)}", "",
-        "[sim]", "dt = 0.004", f"seconds = {plan.seconds}", 'camera = "front"',
+        "[sim]", "dt = 0.004", f"seconds = {plan.seconds}", f'camera = "{plan.camera}"',
         "qpos = " + _toml_value({**dict(zip(ARM, (round(float(v), 5) for v in q0))),
                                  "robot:panda0_finger_joint1": OPEN, "robot:panda0_finger_joint2": OPEN}),
         "",
