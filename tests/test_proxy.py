@@ -122,6 +122,7 @@ def test_box_with_its_kinks(sphere_proxy):
     assert bool((values[status != IN_BAND] <= truth[status != IN_BAND] + 1e-6).all())
 
 
+@pytest.mark.slow
 def test_neural_sdf_within_its_stated_bound_on_held_out_points(mug, mug_proxy):
     proxy = mug_proxy
     assert proxy.error["samples"] > 10_000 and proxy.error["median"] <= proxy.error["p99"] <= proxy.error["max"]
@@ -166,6 +167,7 @@ def test_bad_arguments(sphere_proxy):
 # -- the cache ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_cache_is_keyed_reused_and_refuses_a_corrupt_file(mug, tmp_path, monkeypatch):
     monkeypatch.setenv("ZOO_CACHE", str(tmp_path))
     first = cached_proxy(mug, margin=1e-3, spacing=3e-3)
@@ -275,6 +277,7 @@ def test_sphere_on_plane_as_the_full_collider(sphere_proxy):
     assert ours.stats.exact_faces > 0 and ours.stats.fallback == 0
 
 
+@pytest.mark.slow
 def test_mug_on_rack_as_the_full_collider_and_collide(mug, mug_proxy):
     """The mugs NeuralSDF on the procedural rack, sliding 0.5 mm and turning 0.005 rad per step: the proxy-screened
     contacts are the full collider's and collide's (amortized), their depths the NeuralSDF's at their points; the
@@ -337,3 +340,39 @@ def test_a_deep_penetration_out_of_band_falls_back_to_the_sdf():
     compare(scratch, b, 1e-3, 5e-5)
     assert float(b.depths.min()) < -2.9e-3
     check_exact(sphere, b, sdf_pose)
+
+
+# -- in a simulation ------------------------------------------------------------------------------
+
+
+def test_a_simulation_on_a_proxy_follows_the_one_without():
+    """A ball (any SDF, its proxy given by name) dropped onto a mesh floor: the same rest, its contacts the SDF's."""
+    pytest.importorskip("mujoco")
+    import trimesh
+
+    import zoo.sim
+
+    ball = zoo.Sphere(0.03)
+    proxy = bake_proxy(ball, margin=1e-3, spacing=1e-3)
+    floor = trimesh.creation.box((0.2, 0.2, 0.01))
+    ends = {}
+    for way, option in (("plain", False), ("proxy", {"ball": proxy})):
+        sim = zoo.sim.Simulation(margin=1e-3, proxy=option)
+        sim.add_body("ball", sdf=ball, mass=0.1, pose=pose(None, (0.0, 0.0, 0.0352)), joint="free")
+        sim.add_body("floor", mesh=floor, joint="fixed")
+        sim.step(n=150)
+        ends[way] = sim.pose("ball")[:3, 3]
+        contacts = sim.contacts
+        assert len(contacts) > 0
+        check_exact(ball, contacts, sim.pose("ball"))
+        stats = sim.collider_stats()
+        assert (stats.exact_faces > 0) == (way == "proxy")
+        if way == "proxy":
+            assert sim.world.proxies == {"ball": proxy}
+    assert float(np.linalg.norm(ends["proxy"] - ends["plain"])) < 2e-4
+    assert abs(float(ends["proxy"][2]) - 0.035) < 2e-3  # resting on the floor's top (z 0.005) by its radius
+    with pytest.raises(InputError, match="not SDF bodies"):
+        sim = zoo.sim.Simulation(margin=1e-3, proxy={"floor": proxy})
+        sim.add_body("ball", sdf=ball, mass=0.1, pose=pose(None, (0.0, 0.0, 0.0352)), joint="free")
+        sim.add_body("floor", mesh=floor, joint="fixed")
+        sim.build()

@@ -82,7 +82,8 @@ class Simulation:
         refine: split mesh triangles larger than a quarter of the SDF once, at build (False: the mesh as
             given).
         proxy: with ``coherence``, the model shapes' mesh pairs cull and search on a baked narrow-band proxy and the
-            shape answers only the faces that survive (:func:`zoo.sim.attach`'s ``proxy``).
+            shape answers only the faces that survive (:func:`zoo.sim.attach`'s ``proxy``; a dict names the bodies and
+            may give their proxies).
         mjcf: an MJCF file (path) to start from (a robot, a gripper, a table): its bodies, joints, actuators, mocap
             and options; :meth:`add_body` adds to it, and an SDF given for one of its bodies is attached to it.
 
@@ -105,7 +106,7 @@ class Simulation:
     def __init__(self, dt: float | None = None, gravity=None, method: str = "amortized", margin: float = 1e-3,
                  friction: float | None = None, solref=None, solimp=None,
                  integrator: str | None = None, cone: str | None = None, impratio: float | None = None,
-                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool = False):
+                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool | dict = False):
         if dt is not None and not (dt > 0 and math.isfinite(dt)):
             raise InputError(f"dt must be positive, got {dt}")
         if integrator is not None and integrator.lower() not in INTEGRATORS:
@@ -127,7 +128,7 @@ class Simulation:
                                  friction=None if friction is None else float(friction),
                                  solref=None if solref is None else tuple(solref), solimp=None if solimp is None else tuple(solimp))
         self.method, self.margin = method, float(margin)
-        self.coherence, self.reduce, self.refine, self.proxy = coherence, reduce, refine, bool(proxy)
+        self.coherence, self.reduce, self.refine, self.proxy = coherence, reduce, refine, proxy
         self.bodies: dict[str, Body] = {}
         self.attached: dict[str, object] = {}  # SDFs given for bodies of the MJCF
         self.log: list[StepRecord] = []

@@ -200,7 +200,7 @@ class StepStats:
 def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
            reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
            surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
-           proxy: bool = False) -> World:
+           proxy: bool | dict = False) -> World:
     """sdfzoo's contacts for the SDF bodies of a user's ``mujoco.MjModel`` (see the module docstring).
 
     Args:
@@ -222,6 +222,7 @@ def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e
         proxy: with ``coherence``, each model shape's mesh pairs cull and search on its narrow-band proxy (baked once at
             ``margin``, or read from the cache: :func:`zoo.proxy.cached_proxy`), and the shape answers only the faces
             that survive (``zoo.CoherentCollider``'s ``proxy``); other SDFs, and planes and spheres, are unchanged.
+            A dict {SDF body name: a ``zoo.proxy.ProxySDF``, or True} gives those bodies theirs (any SDF), and no other.
     """
     return World(model, bodies, method=method, margin=margin, coherence=coherence, reduce=reduce, refine=refine,
                  contype=contype, conaffinity=conaffinity, surfaces=surfaces, include_geoms=include_geoms,
@@ -243,7 +244,7 @@ class World:
     def __init__(self, model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
                  reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
                  surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
-                 proxy: bool = False):
+                 proxy: bool | dict = False):
         import mujoco
 
         if not isinstance(model, mujoco.MjModel):
@@ -254,7 +255,10 @@ class World:
         self.method = method
         self.margin = non_negative_float(margin, "margin")
         self.coherence, self.reduce, self.refine = bool(coherence), bool(reduce), bool(refine)
-        self.proxy = bool(proxy)
+        self.proxy = dict(proxy) if isinstance(proxy, dict) else bool(proxy)
+        if isinstance(self.proxy, dict) and set(self.proxy) - set(bodies):
+            raise InputError(f"proxy names {sorted(set(self.proxy) - set(bodies))}, which are not SDF bodies; SDF bodies: "
+                             f"{sorted(bodies)}")
         self.proxies: dict[str, object] = {}  # SDF body name -> its zoo.proxy.ProxySDF, where one is used
         self.tolerance = float(tolerance)
         include = {self._geom_id(name) for name in include_geoms}
@@ -346,13 +350,18 @@ class World:
     def _proxy_for(self, sdf_body: SdfBody):
         """The proxy ``sdf_body``'s mesh pairs search on (one per body, from the cache where baked before), or None:
         without ``proxy`` or ``coherence``, and for SDFs that are not a model's shapes (analytic ones are cheap)."""
-        if not (self.proxy and self.coherence):
+        given = self.proxy.get(sdf_body.name, False) if isinstance(self.proxy, dict) else self.proxy
+        if given is False or given is None or not self.coherence:
             return None
         if sdf_body.name not in self.proxies:
             from ..proxy import cached_proxy, proxy_key
 
-            keyed = proxy_key(sdf_body.sdf, {}) is not None
-            self.proxies[sdf_body.name] = cached_proxy(sdf_body.sdf, margin=self.margin) if keyed else None
+            if given is not True:  # the caller's own proxy
+                self.proxies[sdf_body.name] = given
+            elif isinstance(self.proxy, dict) or proxy_key(sdf_body.sdf, {}) is not None:
+                self.proxies[sdf_body.name] = cached_proxy(sdf_body.sdf, margin=self.margin)
+            else:
+                self.proxies[sdf_body.name] = None
         return self.proxies[sdf_body.name]
 
     def _method_for(self, sdf) -> str:
