@@ -74,7 +74,7 @@ def test_sim_bench_runs_each_method_in_its_own_process_with_the_threads_asked(tm
     monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
     before = torch.get_num_threads()
     path = run_sim_benchmark(tmp_path, seconds=0.004, scenarios=["bottle-holder"], methods=["amortized+coherence"],
-                             references=False, progress=lambda *_: None, threads=3)
+                             references=False, progress=lambda *_: None, threads=3, panda_scenes=())
     report = json.loads(path.read_text())
     (row,) = report["rows"]
     assert "error" not in row, row["error"]
