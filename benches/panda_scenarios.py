@@ -195,9 +195,9 @@ def _rotvec(r):
 
 def load_sdf(spec: dict):
     """The object's SDF as the scene file builds it (model shape or saved codes, scaled)."""
-    from zoo.scenes import _build_sdf
+    from zoo.scenes import build_sdf
 
-    return _build_sdf(spec, SCENES)[0]
+    return build_sdf(spec, SCENES)[0]
 
 
 def _values(sdf, points: np.ndarray) -> np.ndarray:

@@ -40,9 +40,10 @@ from sdfzoo.benches.sim_scenarios import (
     PEG_AXIS,
     PEG_RADIUS,
     PEG_ROOT,
-    _bolt_advance,
-    _gear_ratio,
+    bolt_advance,
     count_teeth,
+    data_mesh,
+    gear_ratio,
     thread_pitch,
 )
 from zoo.files import atomic_path, sha256_file
@@ -195,7 +196,7 @@ def _gear_record(joints: dict[str, int]) -> Callable:
 
 def _bolt_outcome(trace: list[dict], pitch: float, hand: str) -> dict:
     """Advance per turn vs the thread's pitch (benches/sim_scenarios' check), the nut's wobble and final pose."""
-    check = _bolt_advance(None, trace, {"pitch": pitch, "hand": hand})
+    check = bolt_advance(None, trace, {"pitch": pitch, "hand": hand})
     return {"advance_per_turn_mm": check["advance_per_turn_mm"], "turns": check["turns"], "advance_mm": check["advance_mm"],
             "pitch_mm": check["pitch_mm"], "nut_tilt_deg_max": check["nut_tilt_deg_max"],
             "nut_off_axis_mm_max": check["nut_off_axis_mm_max"], "check": check,
@@ -203,7 +204,7 @@ def _bolt_outcome(trace: list[dict], pitch: float, hand: str) -> dict:
 
 
 def _gear_outcome(trace: list[dict], teeth: dict) -> dict:
-    check = _gear_ratio(None, trace, {"teeth": teeth})
+    check = gear_ratio(None, trace, {"teeth": teeth})
     return {"speed_ratio": check["measured_ratio"], "expected_ratio": check["expected_ratio"], "check": check,
             "final_pose": {k: trace[-1][k] for k in ("large", "medium", "w_large", "w_medium")}}
 
@@ -501,14 +502,14 @@ def source_mesh_file(sdf_spec: dict) -> Path:
 def body_mesh(body: dict) -> tuple[np.ndarray, np.ndarray, str, str]:
     """(vertices (V, 3), faces (F, 3), digest, label) of a scene body: its mesh, or its SDF's source mesh."""
     from zoo.meshes import load_mesh
-    from zoo.scenes import _build_mesh
+    from zoo.scenes import build_mesh
 
     if "mesh" in body and "file" in body["mesh"]:
         path = Path(os.environ["ZOO_DATA"]) / body["mesh"]["file"]
     elif "sdf" in body:
         path = source_mesh_file(body["sdf"])
     else:  # a procedural part: named by its vertices and faces
-        mesh, label = _build_mesh(body["mesh"], SCENES)
+        mesh, label = build_mesh(body["mesh"], SCENES)
         vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
         digest = hashlib.sha256(vertices.tobytes() + faces.tobytes()).hexdigest()
         return vertices, faces, digest, label
@@ -663,21 +664,16 @@ def _native_scenario(scenario: str, model, data):
     if scenario == "bolt-nut":
         body = model.body("nut").id
         mujoco.mj_forward(model, data)
-        pitch, hand = thread_pitch(np.asarray(_data_mesh(BOLT_FILE).vertices))
+        pitch, hand = thread_pitch(np.asarray(data_mesh(BOLT_FILE).vertices))
         return (nut_torque_control(body), _nut_record(body, 1.0, data.xmat[body].reshape(3, 3).copy()),
                 lambda m, d, trace: _bolt_outcome(trace, pitch, hand))
     if scenario == "gear-gear":
-        teeth = {name: count_teeth(np.asarray(_data_mesh(f).vertices), GEAR_CENTRES[name]) for name, f in GEAR_FILES.items()}
+        teeth = {name: count_teeth(np.asarray(data_mesh(f).vertices), GEAR_CENTRES[name]) for name, f in GEAR_FILES.items()}
         joints = {n: model.joint(n).id for n in teeth}
         return None, _gear_record(joints), lambda m, d, trace: _gear_outcome(trace, teeth)
     body = model.body("mug" if scenario == "mug-rack" else "bottle").id
     return None, _free_record(body), _mug_outcome if scenario == "mug-rack" else _bottle_outcome
 
-
-def _data_mesh(relative: str):
-    import trimesh
-
-    return trimesh.load(Path(os.environ["ZOO_DATA"]) / relative, force="mesh")
 
 
 # -- command line ----------------------------------------------------------------------------------

@@ -50,7 +50,7 @@ def require_meshes() -> None:
         raise SystemExit("set ZOO_DATA to the folder of the real meshes (../shared/meshes)")
 
 
-def _mesh(relative: str):
+def data_mesh(relative: str):
     import trimesh
 
     return trimesh.load(Path(os.environ["ZOO_DATA"]) / relative, force="mesh")
@@ -208,7 +208,7 @@ def _bottle_upright(sim, trace, extra) -> dict:
 
 
 def _gear_prepare(sim) -> dict:
-    teeth = {name: count_teeth(np.asarray(_mesh(f).vertices), GEAR_CENTRES[name]) for name, f in GEAR_FILES.items()}
+    teeth = {name: count_teeth(np.asarray(data_mesh(f).vertices), GEAR_CENTRES[name]) for name, f in GEAR_FILES.items()}
     return {"teeth": teeth}
 
 
@@ -218,7 +218,7 @@ def _gear_record(sim) -> dict:
             "w_medium": float(sim.data.qvel[sim.bodies["medium"].dof_adr])}
 
 
-def _gear_ratio(sim, trace, extra) -> dict:
+def gear_ratio(sim, trace, extra) -> dict:
     """Speed ratio |w_medium / w_large| (mean speeds after GEAR_SETTLE_S) vs teeth_large / teeth_medium."""
     window = [t for t in trace if t["time"] >= GEAR_SETTLE_S]
     times = np.array([t["time"] for t in window])
@@ -244,7 +244,7 @@ BOLT_SETTLE_S = 0.1  # the nut first drops through the thread's axial play (0.9 
 
 
 def _bolt_prepare(sim) -> dict:
-    pitch, hand = thread_pitch(np.asarray(_mesh(BOLT_FILE).vertices))
+    pitch, hand = thread_pitch(np.asarray(data_mesh(BOLT_FILE).vertices))
     return {"pitch": pitch, "hand": hand}
 
 
@@ -260,7 +260,7 @@ def _bolt_record(sim) -> dict:
             "nut_tilt_deg": _tilt_deg(pose), "nut_off_axis_mm": 1e3 * float(np.hypot(*pose[:2, 3]))}
 
 
-def _bolt_advance(sim, trace, extra) -> dict:
+def bolt_advance(sim, trace, extra) -> dict:
     """Advance per turn of the nut along the bolt after BOLT_SETTLE_S vs the thread's pitch (least-squares
     slope of height against angle); a right-hand thread advances +pitch per +turn (counter-clockwise from +z)."""
     window = [t for t in trace if t["time"] >= BOLT_SETTLE_S]
@@ -310,8 +310,8 @@ def _gripper_carried(sim, trace, extra) -> dict:
 SCENARIOS = {
     "mug-rack": Scenario("sim-mug-rack.toml", _mug_on_peg, record=_mug_record),
     "bottle-holder": Scenario("sim-bottle-holder.toml", _bottle_upright, record=_bottle_record),
-    "gear-gear": Scenario("sim-gear-gear.toml", _gear_ratio, record=_gear_record, prepare=_gear_prepare),
-    "bolt-nut": Scenario("sim-bolt-nut.toml", _bolt_advance, record=_bolt_record, prepare=_bolt_prepare, control=_nut_torque),
+    "gear-gear": Scenario("sim-gear-gear.toml", gear_ratio, record=_gear_record, prepare=_gear_prepare),
+    "bolt-nut": Scenario("sim-bolt-nut.toml", bolt_advance, record=_bolt_record, prepare=_bolt_prepare, control=_nut_torque),
     "gripper-mug": Scenario("sim-gripper-mug.toml", _gripper_carried, record=_gripper_record),
 }
 

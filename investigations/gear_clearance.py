@@ -18,7 +18,7 @@ import argparse
 import numpy as np
 
 from investigations.report import write_report
-from sdfzoo.benches.sim_scenarios import GEAR_CENTRES, GEAR_FILES, _mesh, count_teeth
+from sdfzoo.benches.sim_scenarios import GEAR_CENTRES, GEAR_FILES, count_teeth, data_mesh
 
 
 def _turn(points: np.ndarray, centre, angle: float) -> np.ndarray:
@@ -40,7 +40,7 @@ def clearance(model: str = "gears", offsets_deg=np.arange(-2.0, 2.01, 0.25), shi
     import zoo
     from zoo.meshes import ExactMeshSDF
 
-    large, medium = _mesh(GEAR_FILES["large"]), _mesh(GEAR_FILES["medium"])
+    large, medium = data_mesh(GEAR_FILES["large"]), data_mesh(GEAR_FILES["medium"])
     teeth = {name: count_teeth(np.asarray(m.vertices), GEAR_CENTRES[name]) for name, m in (("large", large), ("medium", medium))}
     ratio = teeth["large"] / teeth["medium"]
     shape = zoo.load(model).shape("industreal_gear_large")

@@ -74,12 +74,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default="out/screw-symmetry.json")
     args = parser.parse_args(argv)
     import zoo
-    from sdfzoo.benches.sim_scenarios import BOLT_FILE, _mesh, require_meshes, thread_pitch
+    from sdfzoo.benches.sim_scenarios import BOLT_FILE, data_mesh, require_meshes, thread_pitch
     from zoo.meshes import signed_distance
 
     require_meshes()
     torch.set_num_threads(1)
-    mesh = _mesh(BOLT_FILE)
+    mesh = data_mesh(BOLT_FILE)
     pitch, hand = thread_pitch(np.asarray(mesh.vertices))
     model = zoo.load("bolts")
     shape = model.shape("factory_bolt_m16")

@@ -201,7 +201,7 @@ def test_cell_bounds_drop_only_faces_the_plain_vertex_cull_keeps_in_vain():
     torch.testing.assert_close(f[queried], torch.as_tensor(sphere(vertices[queried])))
     assert bool(queried[faces[with_cells]].all())  # every kept face's vertices were evaluated
     assert int(queried.sum()) < 0.7 * len(vertices)  # cells bounded by one query cost no vertex query
-    assert len(vertices) >= collide_module._CLUSTER_CULL_MIN
+    assert len(vertices) >= collide_module.CLUSTER_CULL_MIN
 
 
 def test_broad_phase_drops_triangles_outside_the_bounds_box():

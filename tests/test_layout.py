@@ -28,6 +28,20 @@ def test_no_module_imports_a_top_level_cli_pipeline_or_benches():
     assert not offenders, "import these as sdfzoo.<package>:\n" + "\n".join(offenders)
 
 
+def test_no_module_imports_another_modules_private_names():
+    """A name with a leading underscore is its module's own: a module that needs it from another takes a public
+    name (issue 37: one narrow phase shared by collide, coherence and the simulation, not private reach-ins)."""
+    offenders = []
+    for path in sorted(ROOT.rglob("*.py")):
+        if {".venv", "build", "pretrained", "tests"} & set(path.relative_to(ROOT).parts):
+            continue
+        for node in ast.walk(ast.parse(path.read_bytes())):
+            if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+                private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                offenders += [f"{path.relative_to(ROOT)}:{node.lineno}: {name}" for name in private]
+    assert not offenders, "give these a public name in their module:\n" + "\n".join(offenders)
+
+
 IMPORT_EVERYTHING = """
 import importlib, pkgutil, sys
 import sdfzoo.benches, sdfzoo.cli, sdfzoo.pipeline, zoo.errors

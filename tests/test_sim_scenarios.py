@@ -27,10 +27,10 @@ def meshes(monkeypatch):
 
 @needs_meshes
 def test_teeth_counted_on_the_industreal_gears(meshes):
-    from sdfzoo.benches.sim_scenarios import _mesh, count_teeth
+    from sdfzoo.benches.sim_scenarios import count_teeth, data_mesh
 
     centres = {"large": (-0.0302, 0.0), "medium": (0.02025, 0.0), "small": (0.05075, 0.0)}  # axes along z
-    teeth = {name: count_teeth(np.asarray(_mesh(f"gear/industreal_gear_{name}.obj").vertices), c) for name, c in centres.items()}
+    teeth = {name: count_teeth(np.asarray(data_mesh(f"gear/industreal_gear_{name}.obj").vertices), c) for name, c in centres.items()}
     assert teeth == {"large": 60, "medium": 40, "small": 20}  # module 1 mm: pitch radii 30, 20 and 10 mm
 
 
@@ -49,9 +49,9 @@ def test_gear_meshes_turn_in_mesh_with_backlash_at_their_assembly_pose(meshes):
 
 @needs_meshes
 def test_m16_thread_is_right_handed_with_a_2_mm_pitch(meshes):
-    from sdfzoo.benches.sim_scenarios import BOLT_FILE, _mesh, thread_pitch
+    from sdfzoo.benches.sim_scenarios import BOLT_FILE, data_mesh, thread_pitch
 
-    pitch, hand = thread_pitch(np.asarray(_mesh(BOLT_FILE).vertices))
+    pitch, hand = thread_pitch(np.asarray(data_mesh(BOLT_FILE).vertices))
     assert hand == "right" and pitch == pytest.approx(0.002, abs=2.5e-5)  # ISO M16 coarse
 
 

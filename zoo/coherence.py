@@ -46,18 +46,18 @@ from torch.nn import functional as F
 
 from .bounds import LIPSCHITZ, cell_lower_bounds, rounding_slack
 from .collision import (
-    _CLUSTER_CULL_MIN,
+    CLUSTER_CULL_MIN,
     Contacts,
-    _cell_bounds,
-    _contact_normals,
-    _empty_contacts,
-    _faces_near_bounds,
-    _iters,
-    _mesh_arrays,
-    _method,
-    _voxel_of,
+    cell_bounds,
+    checked_method,
     collide,
+    contact_normals,
+    empty_contacts,
+    faces_near_bounds,
+    mesh_tensors,
+    method_iters,
     solve_candidates,
+    voxel_of,
 )
 from .errors import InputError
 from .geometry import bary_to_points, edge_lengths, invert_pose, transform_points, transform_vectors
@@ -340,14 +340,14 @@ class CoherentCollider:
                  reuse_distance: float | None = None, proxy=None, deferred: bool = False):
         check_sdf(sdf)
         self.sdf = sdf
-        self.method = _method(method)
+        self.method = checked_method(method)
         if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
             raise InputError(
                 f'method="amortized" needs a shape from a model with a detector: zoo.load(NAME).shape(...); '
                 f"{type(sdf).__name__} has no detect(triangles)"
             )
         self.margin = non_negative_float(margin, "margin")
-        self.iters = _iters(self.method, iters)
+        self.iters = method_iters(self.method, iters)
         self.refine = int_at_least(refine, "refine")
         if not polish and self.method != "amortized":
             raise InputError(f'polish=False applies to method="amortized" only (got method={method!r}); drop it')
@@ -361,7 +361,7 @@ class CoherentCollider:
         self._use_proxy(proxy)
         self.deferred = bool(deferred) and self.proxy is not None
         self._reported_method = self.method if self.proxy is None else f"proxy+{self.exact_method}"
-        self.vertices, self.faces = _mesh_arrays(mesh)
+        self.vertices, self.faces = mesh_tensors(mesh)
         corners = self.vertices[self.faces].to(torch.float64)  # (F, 3, 3), the mesh's frame
         self._centroid = corners.mean(dim=1)  # (F, 3)
         self._face_radius = (corners - self._centroid.unsqueeze(1)).norm(dim=-1).amax(dim=-1)  # (F,)
@@ -410,7 +410,7 @@ class CoherentCollider:
             raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
         self.exact, self.proxy, self.sdf = self.sdf, proxy, proxy
         self.method = "fw"  # the search on the proxy; ``exact_method`` solves the faces out of its band on the SDF
-        self.iters = _iters("fw", None if self.exact_method == "amortized" else self.iters)
+        self.iters = method_iters("fw", None if self.exact_method == "amortized" else self.iters)
         self.lipschitz = motion_lipschitz(proxy)
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
@@ -435,7 +435,7 @@ class CoherentCollider:
         candidates, kind, f_exact = self._broad_phase(local, search_margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:
-            contacts = _empty_contacts(local, self.faces.shape[0], self.method)
+            contacts = empty_contacts(local, self.faces.shape[0], self.method)
             bary, answer_normals, depths = local.new_zeros((0, 3)), local.new_zeros((0, 3)), local.new_zeros((0,))
             kind = torch.zeros(0, dtype=torch.int64, device=device)
             contacts.timings = {"broad": t1 - t0, "narrow": 0.0, "normals": 0.0}
@@ -498,7 +498,7 @@ class CoherentCollider:
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The vertices in the SDF's frame (V, 3) -> (candidate faces (C,) ascending, how each is answered (C,):
         ``COLD``, ``WARM`` or ``KEPT``, f (V,) at the vertices evaluated at their present position, NaN elsewhere)."""
-        near = _faces_near_bounds(self.sdf, local, self.faces, margin)
+        near = faces_near_bounds(self.sdf, local, self.faces, margin)
         stats.faces_near = int(near.numel())
         near = near[~self._still_clear(near, margin)]
         slack, moved = self._answer_slack(local, near, margin)
@@ -519,9 +519,9 @@ class CoherentCollider:
         open_ = cell_lower_bounds(tri, lower[corner]) <= margin
         stats.faces_skipped = int(stats.faces_near - open_.sum())
         stale = self._stale(used, corner, open_, local)
-        if stale.numel() >= _CLUSTER_CULL_MIN:  # many vertices: one query per cell first, as collide does
+        if stale.numel() >= CLUSTER_CULL_MIN:  # many vertices: one query per cell first, as collide does
             counted = _CountingSDF(self.sdf)
-            bound = _cell_bounds(counted, local[used[stale]])
+            bound = cell_bounds(counted, local[used[stale]])
             stats.cell_queries = counted.queries
             lower[stale] = torch.maximum(lower[stale], bound)
             self._anchor_at(used[stale], local, lower[stale], exact=False)
@@ -646,7 +646,7 @@ class CoherentCollider:
         bary = tri.new_zeros((tri.shape[0], 3))
         depths = torch.full_like(tri[:, 0, 0], torch.nan)
         grads = torch.full_like(tri[:, 0], torch.nan)
-        solve_sdf = _voxel_of(self.sdf, self.voxel_resolution) if self.method == "voxel-fw" else self.sdf
+        solve_sdf = voxel_of(self.sdf, self.voxel_resolution) if self.method == "voxel-fw" else self.sdf
         with torch.no_grad():
             r = reused.nonzero().squeeze(-1)
             if r.numel():
@@ -805,8 +805,8 @@ class CoherentCollider:
         normals = F.normalize(torch.nan_to_num(grads), dim=-1)
         ask = (~known).nonzero().squeeze(-1)
         if ask.numel():
-            solve_sdf = _voxel_of(self.sdf, self.voxel_resolution) if self.method == "voxel-fw" else self.sdf
-            normals[ask] = _contact_normals(solve_sdf, points[ask])
+            solve_sdf = voxel_of(self.sdf, self.voxel_resolution) if self.method == "voxel-fw" else self.sdf
+            normals[ask] = contact_normals(solve_sdf, points[ask])
         return normals
 
     def _remember(self, local: torch.Tensor, candidates: torch.Tensor, bary: torch.Tensor, depths: torch.Tensor,

@@ -125,7 +125,7 @@ def _overlaps_bounds(sdf, triangles: torch.Tensor, margin: float) -> torch.Tenso
     return ((t_hi >= lo - margin) & (t_lo <= hi + margin)).all(dim=-1)
 
 
-def _faces_near_bounds(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float) -> torch.Tensor:
+def faces_near_bounds(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float) -> torch.Tensor:
     """Indices (N,) of the faces whose AABB touches the SDF's bounds grown by ``margin``
     (:func:`_overlaps_bounds`'s test without building the (F, 3, 3) triangles)."""
     lo, hi = (torch.as_tensor(b).to(vertices).reshape(3) for b in sdf.bounds)
@@ -135,7 +135,7 @@ def _faces_near_bounds(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin:
 # From this many distinct vertices on, the broad phase first bounds f at every vertex by one query per
 # cell of about _CLUSTER_SIZE vertices, and evaluates f only at the vertices of the faces those bounds
 # do not clear: on a large mesh near a small SDF, far fewer queries than one per vertex (docs/results.md, the scenes).
-_CLUSTER_CULL_MIN = 512
+CLUSTER_CULL_MIN = 512
 _CLUSTER_SIZE = 8
 
 
@@ -146,7 +146,7 @@ def _vertex_cull(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float
     (:func:`zoo.bounds.cell_lower_bounds`), exceeds ``margin``. f is evaluated once per distinct
     vertex, about half as many queries as one per face, and the amortized narrow phase reuses the
     values; entries of the returned f are NaN where it was not evaluated. Many vertices first go
-    through :func:`_cell_bounds`: a face its cheaper bounds clear costs no vertex query.
+    through :func:`cell_bounds`: a face its cheaper bounds clear costs no vertex query.
     """
     f = torch.full(vertices.shape[:1], math.nan, dtype=vertices.dtype, device=vertices.device)
     if faces.shape[0] == 0:
@@ -156,8 +156,8 @@ def _vertex_cull(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float
     points = vertices[used]
     lower = None
     need = torch.arange(used.numel(), device=used.device)
-    if used.numel() >= _CLUSTER_CULL_MIN:
-        lower = _cell_bounds(sdf, points)
+    if used.numel() >= CLUSTER_CULL_MIN:
+        lower = cell_bounds(sdf, points)
         need = torch.unique(corner[cell_lower_bounds(tri, lower[corner]) <= margin])
     if need.numel():
         with torch.no_grad():
@@ -166,7 +166,7 @@ def _vertex_cull(sdf, vertices: torch.Tensor, faces: torch.Tensor, margin: float
     return cell_lower_bounds(tri, values[corner]) <= margin, f
 
 
-def _cell_bounds(sdf, points: torch.Tensor) -> torch.Tensor:
+def cell_bounds(sdf, points: torch.Tensor) -> torch.Tensor:
     """Lower bounds (N,) of a 1-Lipschitz f at ``points`` (N, 3) from one query per cell of about ``_CLUSTER_SIZE``.
 
     Points are binned on a grid of about N / ``_CLUSTER_SIZE`` occupied cells (a surface's vertices
@@ -231,13 +231,13 @@ def collide(
         :class:`Contacts`, rows ordered by triangle index.
     """
     check_sdf(sdf)
-    method = _method(method)
+    method = checked_method(method)
     if method == "amortized" and not callable(getattr(sdf, "detect", None)):
         raise InputError(
             f'method="amortized" needs a shape from a model with a detector: zoo.load(NAME).shape(...); '
             f"{type(sdf).__name__} has no detect(triangles)"
         )
-    iters = _iters(method, iters)
+    iters = method_iters(method, iters)
     if method == "voxel-fw":
         from .voxel import resolution_per_axis
 
@@ -246,7 +246,7 @@ def collide(
     if not polish and method != "amortized":
         raise InputError(f'polish=False applies to method="amortized" only (got method={method!r}); drop it')
     margin = non_negative_float(margin, "margin")
-    vertices, faces = _mesh_arrays(mesh)
+    vertices, faces = mesh_tensors(mesh)
     sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(vertices.device)
     mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(vertices.device)
 
@@ -254,23 +254,23 @@ def collide(
     sdf_from_mesh = (invert_pose(sdf_pose) @ mesh_pose).to(vertices.dtype)
     local = transform_points(sdf_from_mesh, vertices)  # (V, 3) in the SDF's frame
     # The broad phase as candidate_triangles, without building or re-validating all F triangles.
-    candidates = _faces_near_bounds(sdf, local, faces, margin)
+    candidates = faces_near_bounds(sdf, local, faces, margin)
     survives, f_vertices = _vertex_cull(sdf, local, faces[candidates], margin)
     candidates = candidates[survives]
     tri = local[faces[candidates]]  # (N, 3, 3)
     t1 = time.perf_counter()
     if candidates.numel() == 0:
-        empty = _empty_contacts(local, faces.shape[0], method)
+        empty = empty_contacts(local, faces.shape[0], method)
         empty.timings = {"broad": t1 - t0, "narrow": 0.0, "normals": 0.0}
         return empty
-    solve_sdf = _voxel_of(sdf, voxel_resolution) if method == "voxel-fw" else sdf
+    solve_sdf = voxel_of(sdf, voxel_resolution) if method == "voxel-fw" else sdf
     with torch.no_grad():
         bary, depths = solve_candidates(sdf, solve_sdf, local, faces[candidates], f_vertices, margin, method, iters,
                                         polish, refine)
         points = bary_to_points(tri, bary)
     keep = depths <= margin
     t2 = time.perf_counter()
-    normals = _contact_normals(solve_sdf, points[keep])  # gradients only where there is a contact
+    normals = contact_normals(solve_sdf, points[keep])  # gradients only where there is a contact
     world = sdf_pose.to(tri.dtype)
     return Contacts(
         points=transform_points(world, points[keep]),
@@ -338,7 +338,7 @@ def _amortized_mesh(sdf, local: torch.Tensor, faces: torch.Tensor, tri: torch.Te
     return bary, depths
 
 
-def _contact_normals(sdf, points: torch.Tensor) -> torch.Tensor:
+def contact_normals(sdf, points: torch.Tensor) -> torch.Tensor:
     """Unit gradients (K, 3) of ``sdf`` at the contact points (K, 3); zeros where the gradient vanishes."""
     if points.shape[0] == 0:
         return points.new_zeros((0, 3))
@@ -374,7 +374,7 @@ _VOXEL_CACHE_SIZE = 2  # grids at 256^3 are 64 MiB each; keep the working set sm
 _voxel_cache: dict[tuple[int, tuple], tuple[object, object]] = {}
 
 
-def _voxel_of(sdf, resolution):
+def voxel_of(sdf, resolution):
     """The cached ``VoxelSDF`` of ``sdf`` at ``resolution``; built on first use.
 
     Keyed by the SDF object's identity; the cache holds the SDF itself so its id cannot be
@@ -403,20 +403,20 @@ def clear_voxel_cache() -> None:
 # -- input checks ---------------------------------------------------------------------------
 
 
-def _mesh_arrays(mesh) -> tuple[torch.Tensor, torch.Tensor]:
+def mesh_tensors(mesh) -> tuple[torch.Tensor, torch.Tensor]:
     """Validated vertices (V, 3) float and faces (F, 3) int64 from a mesh or a (V, F) pair; an empty mesh is no error."""
     vertices, faces = mesh_pair(mesh)
     vertices = as_points(vertices, "mesh vertices", allow_empty=True)
     return vertices, as_faces(faces, vertices.shape[0]).to(vertices.device)
 
 
-def _method(method) -> str:
+def checked_method(method) -> str:
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; use one of {', '.join(repr(m) for m in METHODS)}")
     return method
 
 
-def _iters(method: str, iters) -> int | None:
+def method_iters(method: str, iters) -> int | None:
     if method == "amortized":
         if iters is not None:
             raise InputError('iters has no meaning for method="amortized" (one pass); use refine=N for Frank-Wolfe steps after it')
@@ -424,7 +424,7 @@ def _iters(method: str, iters) -> int | None:
     return DEFAULT_ITERS[method] if iters is None else int_at_least(iters, "iters", minimum=1)
 
 
-def _empty_contacts(triangles: torch.Tensor, n_triangles: int, method: str) -> Contacts:
+def empty_contacts(triangles: torch.Tensor, n_triangles: int, method: str) -> Contacts:
     z = triangles.new_zeros
     return Contacts(
         points=z((0, 3)),

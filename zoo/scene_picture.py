@@ -151,7 +151,7 @@ def plot_scene(scene, contacts, path: str | os.PathLike) -> None:
               ("close-up of the contacts", close, posed_surface(scene.sdf, pose, *close), True))
     for i, (title, (centre, radius), surface, arrows) in enumerate(panels):
         ax = fig.add_subplot(1, 2, i + 1, projection="3d", computed_zorder=False)
-        _draw_panel(ax, centre, radius, triangles, face_normals, *surface, pts, normals if arrows else None)
+        draw_panel(ax, centre, radius, triangles, face_normals, *surface, pts, normals if arrows else None)
         ax.set_title(title)
     deepest = f", deepest {1e3 * float(contacts.depths.min()):+.3f} mm" if len(pts) else ""
     fig.suptitle(f"{scene.name}: {scene.sdf_label or 'SDF'} (blue points, its surface) on {scene.mesh_label or 'mesh'} (grey)\n"
@@ -162,7 +162,7 @@ def plot_scene(scene, contacts, path: str | os.PathLike) -> None:
     plt.close(fig)
 
 
-def _draw_panel(ax, centre, radius, triangles, face_normals, sdf_points, sdf_normals, pts, normals) -> None:
+def draw_panel(ax, centre, radius, triangles, face_normals, sdf_points, sdf_normals, pts, normals) -> None:
     """One panel: what lies within the cube of half-side ``radius`` around ``centre``; ``normals`` (K, 3) of
     the contacts as arrows, if given."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection

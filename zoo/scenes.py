@@ -131,9 +131,9 @@ def scene_from_dict(spec: dict, base_dir: Path = Path(".")) -> Scene:
         if key not in spec:
             raise InputError(f"a scene needs a [{key}] table; see `zoo collide --help` for the format")
     t0 = time.perf_counter()
-    sdf, sdf_label = _build_sdf(spec["sdf"], base_dir)
+    sdf, sdf_label = build_sdf(spec["sdf"], base_dir)
     t1 = time.perf_counter()
-    mesh, mesh_label = _build_mesh(spec["mesh"], base_dir)
+    mesh, mesh_label = build_mesh(spec["mesh"], base_dir)
     t2 = time.perf_counter()
     return Scene(
         name=spec.get("name", "scene"),
@@ -151,9 +151,9 @@ def scene_from_dict(spec: dict, base_dir: Path = Path(".")) -> Scene:
     )
 
 
-def _build_sdf(spec: dict, base_dir: Path):
+def build_sdf(spec: dict, base_dir: Path):
     if "scale" in spec:  # a source mesh in other units than metres: the shape `scale` times larger
-        sdf, label = _build_sdf({k: v for k, v in spec.items() if k != "scale"}, base_dir)
+        sdf, label = build_sdf({k: v for k, v in spec.items() if k != "scale"}, base_dir)
         if not callable(getattr(sdf, "scaled", None)):
             raise InputError(f"[sdf] scale applies to a model's shape (model, codes); {type(sdf).__name__} cannot be scaled")
         return sdf.scaled(spec["scale"]), f"{label} x{spec['scale']}"
@@ -176,7 +176,7 @@ def _build_sdf(spec: dict, base_dir: Path):
     return model.shape(shape), f"{model.name}@{model.version}:{shape}"
 
 
-def _build_mesh(spec: dict, base_dir: Path):
+def build_mesh(spec: dict, base_dir: Path):
     if "procedural" in spec:
         from .parts import make_part  # trimesh's creation and remeshing: only for a scene that builds a part
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import require
 from ..files import atomic_path
-from ..scene_picture import MESH_COLOUR, SDF_COLOUR, _draw_panel, clipped_to_cube, posed, shaded, surface_points
+from ..scene_picture import MESH_COLOUR, SDF_COLOUR, clipped_to_cube, draw_panel, posed, shaded, surface_points
 from .contacts import face_normals
 from .geoms import cube_corners
 
@@ -177,7 +177,7 @@ def still_figure(plt, views: list, poses: np.ndarray, panel_px: int):
     for i, (name, (centre, radius), drawables) in enumerate(views):
         ax = fig.add_subplot(1, len(views), i + 1, projection="3d", computed_zorder=False)
         fixed = np.array([d.fixed for d in drawables])
-        _draw_panel(ax, centre, radius, *world_geometry([d for d in drawables if d.fixed], poses[fixed]), empty, None)
+        draw_panel(ax, centre, radius, *world_geometry([d for d in drawables if d.fixed], poses[fixed]), empty, None)
         ax.set_title(name, fontsize=9)
         axes.append(ax)
     caption = fig.suptitle("", fontsize=10)

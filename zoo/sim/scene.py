@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..scenes import _build_mesh, _build_sdf, pose_matrix, read_scene
+from ..scenes import build_mesh, build_sdf, pose_matrix, read_scene
 from .simulation import Simulation
 
 SIM_KEYS = {"dt", "seconds", "gravity", "friction", "solref", "solimp", "integrator", "cone", "impratio", "sdf_mass", "drop",
@@ -141,10 +141,10 @@ def _add_body(sim: Simulation, spec: dict, base_dir: Path) -> None:
     sdf = mesh = None
     labels = []
     if "sdf" in spec:
-        sdf, label = _build_sdf(spec["sdf"], base_dir)
+        sdf, label = build_sdf(spec["sdf"], base_dir)
         labels.append(label)
     if "mesh" in spec:
-        mesh, label = _build_mesh(spec["mesh"], base_dir)
+        mesh, label = build_mesh(spec["mesh"], base_dir)
         labels.append(label)
     sim.labels[spec["name"]] = " + ".join(labels)
     if sim.spec.body(spec["name"]) is not None:  # a body of the scene's MJCF: its SDF is attached to it
