@@ -63,9 +63,26 @@ def bake(model: str, shape: str, margin: float) -> dict:
             "error_bound_m": proxy.error_bound, "reads": reads}
 
 
-def simulate(scenario: str, steps: int | None, ways: list[str] | None = None) -> dict:
+def refine_fixed_meshes(sim, times: int) -> int:
+    """Subdivide every fixed mesh body of ``sim`` (not built yet) ``times`` times (each 4x the faces, the same
+    surface); returns the faces the fixed meshes hold then."""
+    import trimesh
+
+    faces = 0
+    for body in sim.bodies.values():
+        if body.joint == "fixed" and body.mesh is not None:
+            v, f = body.mesh
+            for _ in range(times):
+                v, f = trimesh.remesh.subdivide(v, f)
+            body.mesh = (np.asarray(v, np.float64), np.asarray(f, np.int64))
+            faces += len(f)
+    return faces
+
+
+def simulate(scenario: str, steps: int | None, ways: list[str] | None = None, refine: int = 0) -> dict:
     """``scenario`` run the ways of ``WAYS`` named (all by default) in turn, step by step (see the module docstring);
-    the end poses are measured from the first way's (the full path's, when it runs)."""
+    the end poses are measured from the first way's (the full path's, when it runs). ``refine``: the fixed meshes
+    subdivided that many times (4x their faces each)."""
     import zoo.sim
     from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES, advance
 
@@ -75,6 +92,7 @@ def simulate(scenario: str, steps: int | None, ways: list[str] | None = None) ->
         if ways and way not in ways:
             continue
         sim = zoo.sim.load_scene(SCENES / spec.scene, **options)
+        fixed_faces = refine_fixed_meshes(sim, refine)
         sim.build()  # the proxy is baked or read here, before the timed steps
         runs[way] = {"sim": sim, "extra": spec.prepare(sim) or {}, "trace": [], "wall": []}
     reference = next(iter(runs))
@@ -88,7 +106,8 @@ def simulate(scenario: str, steps: int | None, ways: list[str] | None = None) ->
             run["trace"].append({"time": run["sim"].time, **spec.record(run["sim"])})
     moving = next(name for name, body in first.bodies.items() if body.joint != "fixed")
     end = {way: run["sim"].pose(moving) for way, run in runs.items()}
-    out = {"scenario": scenario, "steps": steps, "dt": first.dt, "body": moving, "ways": {}}
+    out = {"scenario": scenario, "steps": steps, "dt": first.dt, "body": moving, "refine": refine,
+           "fixed_mesh_faces": fixed_faces, "ways": {}}
     for way, run in runs.items():
         sim, log = run["sim"], run["sim"].log
         stats = sim.collider_stats().as_dict()
@@ -122,6 +141,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=None, help="steps per run (default: the scene's seconds)")
     parser.add_argument("--way", action="append", default=[], choices=sorted(WAYS),
                         help="with --sim: only these ways (default all; the first named is the reference of the end poses)")
+    parser.add_argument("--refine", type=int, action="append", default=[],
+                        help="with --sim: subdivide the fixed meshes this many times (4x faces each; repeatable: one run each)")
     parser.add_argument("--out", default="out/proxy.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -142,12 +163,13 @@ def main(argv: list[str] | None = None) -> None:
         require_meshes()
         report["sim"] = []
         for scenario in args.sim:
-            result = simulate(scenario, args.steps, [w for w in WAYS if w in args.way] or None)
-            report["sim"].append(result)
-            for way, row in result["ways"].items():
-                print(f"{scenario} {way:>8}: step {row['step_ms']['median']:.1f} ms (mean {row['step_ms']['mean']:.1f}), "
-                      f"collide {row['collide_ms']['median']:.1f}, contacts {row['contacts_per_step']:.1f}, "
-                      f"penetration {row['max_penetration_mm']:.3f} mm ({row['penetration_vs_full']:.2f} of {result['reference']}), "
-                      f"end {row['end_from_full_mm']:.3f} mm from {result['reference']}, check {row['check'].get('passed')}",
-                      flush=True)
+            for refine in args.refine or [0]:
+                result = simulate(scenario, args.steps, [w for w in WAYS if w in args.way] or None, refine)
+                report["sim"].append(result)
+                for way, row in result["ways"].items():
+                    print(f"{scenario} ({result['fixed_mesh_faces']} fixed faces) {way:>8}: step {row['step_ms']['median']:.1f} ms (mean {row['step_ms']['mean']:.1f}), "
+                          f"collide {row['collide_ms']['median']:.1f}, contacts {row['contacts_per_step']:.1f}, "
+                          f"penetration {row['max_penetration_mm']:.3f} mm ({row['penetration_vs_full']:.2f} of {result['reference']}), "
+                          f"end {row['end_from_full_mm']:.3f} mm from {result['reference']}, check {row['check'].get('passed')}",
+                          flush=True)
     write_report(args.out, report, __name__, argv)
