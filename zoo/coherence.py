@@ -49,18 +49,17 @@ from .collision import (
     CLUSTER_CULL_MIN,
     Contacts,
     cell_bounds,
-    checked_method,
     collide,
     contact_normals,
     empty_contacts,
     faces_near_bounds,
     mesh_tensors,
-    method_iters,
     solve_candidates,
     voxel_of,
 )
 from .errors import InputError
 from .geometry import bary_to_points, edge_lengths, invert_pose, transform_points, transform_vectors
+from .methods import check_supports, iterations
 from .sdf import Box, Capsule, Sphere, Torus, TransformedSDF, check_sdf
 from .solvers import frank_wolfe, line_search_step
 from .validation import as_pose, int_at_least, non_negative_float, positive_float
@@ -340,14 +339,9 @@ class CoherentCollider:
                  reuse_distance: float | None = None, proxy=None, deferred: bool = False):
         check_sdf(sdf)
         self.sdf = sdf
-        self.method = checked_method(method)
-        if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
-            raise InputError(
-                f'method="amortized" needs a shape from a model with a detector: zoo.load(NAME).shape(...); '
-                f"{type(sdf).__name__} has no detect(triangles)"
-            )
+        self.method = check_supports(method, sdf).name
         self.margin = non_negative_float(margin, "margin")
-        self.iters = method_iters(self.method, iters)
+        self.iters = iterations(self.method, iters)
         self.refine = int_at_least(refine, "refine")
         if not polish and self.method != "amortized":
             raise InputError(f'polish=False applies to method="amortized" only (got method={method!r}); drop it')
@@ -410,7 +404,7 @@ class CoherentCollider:
             raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
         self.exact, self.proxy, self.sdf = self.sdf, proxy, proxy
         self.method = "fw"  # the search on the proxy; ``exact_method`` solves the faces out of its band on the SDF
-        self.iters = method_iters("fw", None if self.exact_method == "amortized" else self.iters)
+        self.iters = iterations("fw", None if self.exact_method == "amortized" else self.iters)
         self.lipschitz = motion_lipschitz(proxy)
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:

@@ -45,11 +45,12 @@ from .bounds import cell_lower_bounds, rounding_slack
 from .errors import InputError
 from .geometry import bary_to_points, faces_touching_box, invert_pose, transform_points, transform_vectors, unique_rows
 from .large_triangles import best_pieces, cut_large
+from .methods import NARROW_PHASES, check_supports, iterations
 from .sdf import check_sdf
 from .validation import as_faces, as_points, as_pose, as_triangles, int_at_least, mesh_pair, non_negative_float
 
-METHODS = ("fw", "pgd", "voxel-fw", "amortized")
-DEFAULT_ITERS = {"fw": 10, "pgd": 32, "voxel-fw": 10}
+METHODS = tuple(NARROW_PHASES)  # the registry's names (zoo.methods)
+DEFAULT_ITERS = {name: m.default_iters for name, m in NARROW_PHASES.items() if m.default_iters is not None}
 
 
 @dataclass
@@ -231,13 +232,8 @@ def collide(
         :class:`Contacts`, rows ordered by triangle index.
     """
     check_sdf(sdf)
-    method = checked_method(method)
-    if method == "amortized" and not callable(getattr(sdf, "detect", None)):
-        raise InputError(
-            f'method="amortized" needs a shape from a model with a detector: zoo.load(NAME).shape(...); '
-            f"{type(sdf).__name__} has no detect(triangles)"
-        )
-    iters = method_iters(method, iters)
+    method = check_supports(method, sdf).name
+    iters = iterations(method, iters)
     if method == "voxel-fw":
         from .voxel import resolution_per_axis
 
@@ -408,20 +404,6 @@ def mesh_tensors(mesh) -> tuple[torch.Tensor, torch.Tensor]:
     vertices, faces = mesh_pair(mesh)
     vertices = as_points(vertices, "mesh vertices", allow_empty=True)
     return vertices, as_faces(faces, vertices.shape[0]).to(vertices.device)
-
-
-def checked_method(method) -> str:
-    if method not in METHODS:
-        raise InputError(f"unknown method {method!r}; use one of {', '.join(repr(m) for m in METHODS)}")
-    return method
-
-
-def method_iters(method: str, iters) -> int | None:
-    if method == "amortized":
-        if iters is not None:
-            raise InputError('iters has no meaning for method="amortized" (one pass); use refine=N for Frank-Wolfe steps after it')
-        return None
-    return DEFAULT_ITERS[method] if iters is None else int_at_least(iters, "iters", minimum=1)
 
 
 def empty_contacts(triangles: torch.Tensor, n_triangles: int, method: str) -> Contacts:

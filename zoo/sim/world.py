@@ -41,6 +41,7 @@ import zoo
 
 from ..errors import InputError
 from ..geometry import invert_pose
+from ..methods import method_for
 from ..validation import non_negative_float
 from .contacts import (
     REFINE_CELLS,
@@ -365,9 +366,7 @@ class World:
         return self.proxies[sdf_body.name]
 
     def _method_for(self, sdf) -> str:
-        if self.method == "amortized" and not callable(getattr(sdf, "detect", None)):
-            return "fw"
-        return self.method
+        return method_for(self.method, sdf)
 
     # -- running -----------------------------------------------------------------------------------
 
