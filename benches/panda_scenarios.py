@@ -492,8 +492,11 @@ def step_metrics(step_s: np.ndarray, contacts: np.ndarray, penetration: np.ndarr
                  ) -> dict:
     """A run's per-step figures from its steps' arrays (S,): time per step (s), the object's contacts, its deepest
     penetration (m) and the time spent finding contacts (s); in ``zoo bench --sim``'s keys."""
-    pct = lambda x, scale: {"median": scale * float(np.median(x)), "p90": scale * float(np.percentile(x, 90)),  # noqa: E731
-                            "p99": scale * float(np.percentile(x, 99)), "max": scale * float(np.max(x))}
+    from .sim_bench import percentiles
+
+    def pct(x, scale):
+        return {**percentiles(scale * np.asarray(x), (50, 90, 99)), "max": scale * float(np.max(x))}
+
     out = {"steps": int(len(step_s)), "wall_s": float(step_s.sum()), "steps_per_s": len(step_s) / float(step_s.sum()),
            "step_ms": pct(step_s, 1e3), "step_ms_mean": 1e3 * float(step_s.mean()),
            "contacts_per_step": float(contacts.mean()), "contacts_max": int(contacts.max()),

@@ -285,6 +285,15 @@ def _plane_descent(tri: torch.Tensor, bary: torch.Tensor, g: torch.Tensor) -> to
     return torch.where((blocked.sum(-1) > 1).unsqueeze(-1), torch.zeros_like(direction), direction)
 
 
+def moved_along_normal(value: torch.Tensor, normal: torch.Tensor, tri: torch.Tensor, then: torch.Tensor,
+                       bary: torch.Tensor) -> torch.Tensor:
+    """A kept answer's depth (N,) now: ``value`` (N,) at barycentrics ``bary`` (N, 3) of faces that were at ``then``
+    (N, 3, 3) and are now at ``tri`` (N, 3, 3), moved to first order along its unit ``normal`` (N, 3) (unchanged where
+    the normal is NaN: none known)."""
+    shift = bary_to_points(tri, bary) - bary_to_points(then, bary)
+    return value + torch.nan_to_num((shift * normal).sum(dim=-1))
+
+
 class _CountingSDF:
     """An SDF, counting the points asked for (values and gradients alike: what the cell bounds, the proxy's survivors cost)."""
 
@@ -679,9 +688,7 @@ class CoherentCollider:
         """The last answers of the faces ``faces`` (R,), now at ``tri`` (R, 3, 3): bary (R, 3), depths (R,) moved to
         first order along their normal (unchanged where none is known), normals (R, 3) (NaN where unknown)."""
         bary, normal = self._bary[faces], self._answer_normal[faces]
-        shift = bary_to_points(tri, bary) - bary_to_points(self._answered_at[faces], bary)
-        depths = self._answer[faces] + torch.nan_to_num((shift * normal).sum(dim=-1))
-        return bary, depths, normal
+        return bary, moved_along_normal(self._answer[faces], normal, tri, self._answered_at[faces], bary), normal
 
     def _warm_reach(self, local: torch.Tensor, faces: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the faces ``faces`` (N,), which moved ``moved`` (N,) since their last answer, moved less than
@@ -762,9 +769,8 @@ class CoherentCollider:
             k = kept.nonzero().squeeze(-1)
             if k.numel():  # as the proxy's kept answers: the depth moved to first order along the normal
                 b, g = self._exact_bary[faces[k]], self._exact_grad[faces[k]]
-                shift = bary_to_points(tri[k], b) - bary_to_points(self._exact_at[faces[k]], b)
                 out_bary[k], grads[k] = b, g
-                values[k] = stored[k] + (shift * F.normalize(g, dim=-1)).sum(dim=-1)
+                values[k] = moved_along_normal(stored[k], F.normalize(g, dim=-1), tri[k], self._exact_at[faces[k]], b)
                 stats.exact_kept += int(k.numel())
             a = (~kept).nonzero().squeeze(-1)
             if a.numel():
