@@ -30,15 +30,22 @@ def cell_lower_bounds(cells: torch.Tensor, values: torch.Tensor, lipschitz: floa
     the smallest ball holding the triangle, circumradius or half the longest edge, which is the
     farthest any point of the triangle is from its nearest vertex). Rounding slack is subtracted.
     """
+    reach, radius = triangle_reach(cells)
+    by_vertex = (values - lipschitz * reach).amax(dim=-1)
+    by_ball = values.amin(dim=-1) - lipschitz * radius
+    bound = torch.maximum(by_vertex, by_ball)
+    return bound - rounding_slack(values.abs().amax(dim=-1), reach.amax(dim=-1), cells.abs().amax(dim=(1, 2)))
+
+
+def triangle_reach(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For triangles (C, 3, 3): how far any point of each lies from each vertex at most (C, 3) (the longest edge at
+    it), and the radius (C,) of the smallest ball holding it (circumradius, or half the longest edge where the
+    triangle is not acute: the farthest any point lies from its nearest vertex). Rigid motions leave both unchanged."""
     e = torch.stack([(cells[:, 1] - cells[:, 2]).norm(dim=-1), (cells[:, 2] - cells[:, 0]).norm(dim=-1),
                      (cells[:, 0] - cells[:, 1]).norm(dim=-1)], dim=-1)  # (C, 3): edge k opposite vertex k
     reach = torch.stack([torch.maximum(e[:, 1], e[:, 2]), torch.maximum(e[:, 0], e[:, 2]), torch.maximum(e[:, 0], e[:, 1])], dim=-1)
-    by_vertex = (values - lipschitz * reach).amax(dim=-1)
     longest = e.amax(dim=-1)
     twice_area = torch.linalg.cross(cells[:, 1] - cells[:, 0], cells[:, 2] - cells[:, 0], dim=-1).norm(dim=-1)
     not_acute = 2 * longest.square() >= e.square().sum(dim=-1)  # longest^2 >= the other two's squares summed
     circumradius = e.prod(dim=-1) / (2 * twice_area).clamp_min(torch.finfo(cells.dtype).tiny)
-    radius = torch.where(not_acute, 0.5 * longest, circumradius)
-    by_ball = values.amin(dim=-1) - lipschitz * radius
-    bound = torch.maximum(by_vertex, by_ball)
-    return bound - rounding_slack(values.abs().amax(dim=-1), longest, cells.abs().amax(dim=(1, 2)))
+    return reach, torch.where(not_acute, 0.5 * longest, circumradius)

@@ -361,14 +361,14 @@ class CoherentCollider:
         self.lipschitz = motion_lipschitz(sdf) if lipschitz is None else positive_float(lipschitz, "lipschitz")
         reuse = REUSE_FRACTION * self.margin if reuse_distance is None else non_negative_float(reuse_distance, "reuse_distance")
         self.reuse_distance = reuse if self.warm_start else 0.0
-        self._use_proxy(proxy)
-        self.deferred = bool(deferred) and self.proxy is not None
-        self._reported_method = self.method if self.proxy is None else f"proxy+{self.exact_method}"
         self.vertices, self.faces = mesh_tensors(mesh)
+        self._on_proxy = self._proxy_collider(proxy, deferred)
+        self.proxy = None if self._on_proxy is None else self._on_proxy.proxy
+        self.deferred = self._on_proxy is not None and self._on_proxy.deferred
         corners = self.vertices[self.faces].to(torch.float64)  # (F, 3, 3), the mesh's frame
         self._centroid = corners.mean(dim=1)  # (F, 3)
         self._face_radius = (corners - self._centroid.unsqueeze(1)).norm(dim=-1).amax(dim=-1)  # (F,)
-        self.stats = CoherenceStats()
+        self.stats = CoherenceStats() if self._on_proxy is None else self._on_proxy.stats
         self.last_stats = CoherenceStats()
         self.last_candidates = torch.zeros(0, dtype=torch.int64, device=self.vertices.device)
         self.reset()
@@ -387,41 +387,37 @@ class CoherentCollider:
         self._clear_pose = torch.zeros(f.shape[:1], dtype=torch.int64, device=v.device)  # (F,) at this entry of _poses
         self._clear_centroid = torch.zeros((f.shape[0], 3), dtype=torch.float64, device=v.device)  # (F, 3) SDF frame, then
         self._poses = torch.zeros((0, 3, 4), dtype=torch.float64, device=v.device)  # (H, 3, 4) SDF-from-mesh, one per call
-        # with a proxy, the SDF's own last answer per face: barycentrics, value, gradient, and where the face was then
-        self._exact_bary = v.new_zeros((f.shape[0], 3))  # (F, 3)
-        self._exact_value = torch.full(f.shape[:1], torch.nan, dtype=v.dtype, device=v.device)  # (F,) NaN: none
-        self._exact_grad = v.new_zeros((f.shape[0], 3))  # (F, 3)
-        self._exact_at = v.new_zeros((f.shape[0], 3, 3))  # (F, 3, 3) SDF frame
-        self._pending = None  # deferred: the last call's proxy contacts (exact_contacts answers them)
+        if self._on_proxy is not None:
+            self._on_proxy.reset()
 
-    def _use_proxy(self, proxy) -> None:
-        """Set up the search on a proxy (see the class's ``proxy`` argument): ``self.sdf`` becomes the proxy and
-        ``self.exact`` the SDF given; without one, ``self.exact`` is None."""
-        self.exact, self.proxy, self.exact_method = None, None, self.method
+    def _proxy_collider(self, proxy, deferred: bool):
+        """The :class:`zoo.proxy_collider.ProxyCollider` this collider runs on (see the class's ``proxy`` argument), or
+        None without a proxy."""
         if proxy is None or proxy is False:
-            return
+            return None
         if not self.coherence:
             raise InputError("proxy= needs coherence: coherence=False is the from-scratch reference, which queries the SDF only")
         if self.method == "voxel-fw":
             raise InputError('proxy= does not apply to method="voxel-fw", which solves on its own grid; use "fw" or "amortized"')
+        from .proxy_collider import ProxyCollider
+
         if proxy is True:
             from .proxy import cached_proxy
 
             proxy = cached_proxy(self.sdf, margin=self.margin)
         check_sdf(proxy)
-        if not callable(getattr(proxy, "read", None)) or not hasattr(proxy, "error_bound"):
-            raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
-        self.exact, self.proxy, self.sdf = self.sdf, proxy, proxy
-        self.method = "fw"  # the search on the proxy; ``exact_method`` solves the faces out of its band on the SDF
-        self.iters = iterations("fw", None if self.exact_method == "amortized" else self.iters)
-        self.lipschitz = motion_lipschitz(proxy)
+        return ProxyCollider(self.sdf, (self.vertices, self.faces), proxy, self.margin, self.method,
+                             iters=None if self.method == "amortized" else self.iters, polish=self.polish,
+                             reuse_distance=self.reuse_distance, deferred=deferred)
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
         """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them;
         ``margin`` replaces the collider's for this call (the bounds carried over do not depend on it)."""
+        if self._on_proxy is not None:
+            contacts = self._on_proxy(sdf_pose, mesh_pose, margin)
+            self.last_stats, self.last_candidates = self._on_proxy.last_stats, self._on_proxy.last_candidates
+            return contacts
         margin = self.margin if margin is None else non_negative_float(margin, "margin")
-        # on a proxy, everything up to the contacts runs at the margin plus its error bound (f >= proxy - error_bound)
-        search_margin = margin if self.proxy is None else margin + self.proxy.error_bound
         if not self.coherence:
             return collide(self.sdf, (self.vertices, self.faces), sdf_pose, mesh_pose, margin, self.method,
                            iters=None if self.method == "amortized" else self.iters, refine=self.refine,
@@ -430,12 +426,11 @@ class CoherentCollider:
         sdf_pose = as_pose(sdf_pose, torch.float64, "sdf_pose").to(device)
         mesh_pose = as_pose(mesh_pose, torch.float64, "mesh_pose").to(device)
         stats = CoherenceStats(steps=1)
-        self._pending = None
         t0 = time.perf_counter()
         relative = invert_pose(sdf_pose) @ mesh_pose
         self._record_pose(relative)
         local = transform_points(relative.to(self.vertices.dtype), self.vertices)
-        candidates, kind, f_exact = self._broad_phase(local, search_margin, stats)
+        candidates, kind, f_exact = self._broad_phase(local, margin, stats)
         t1 = time.perf_counter()
         if candidates.numel() == 0:
             contacts = empty_contacts(local, self.faces.shape[0], self.method)
@@ -443,26 +438,20 @@ class CoherentCollider:
             kind = torch.zeros(0, dtype=torch.int64, device=device)
             contacts.timings = {"broad": t1 - t0, "narrow": 0.0, "normals": 0.0}
         else:
-            bary, depths, grads = self._narrow_phase(local, candidates, kind, f_exact, search_margin, stats)
+            bary, depths, grads = self._narrow_phase(local, candidates, kind, f_exact, margin, stats)
             points = bary_to_points(local[self.faces[candidates]], bary)
-            keep = depths <= search_margin
+            keep = depths <= margin
             t2 = time.perf_counter()
             normals = self._normals(points[keep], grads[keep])
             answer_normals = torch.full_like(points, torch.nan)
             answer_normals[keep] = normals
             rows = keep.nonzero().squeeze(-1)
             out_bary, out_depths, out_points = bary[keep], depths[keep], points[keep]
-            if self.proxy is not None and self.deferred:  # the proxy's contacts; exact_contacts answers the rows kept
-                self._pending = (local, sdf_pose, candidates[rows], kind[rows], out_bary, out_points, margin)
-            elif self.proxy is not None:  # the SDF itself at the faces the proxy kept: its points, depths and normals
-                out_bary, out_depths, out_points, normals, contact = self._exact_rows(
-                    local, candidates[rows], kind[rows], out_bary, out_points, margin, stats)
-                rows = rows[contact]
             world = sdf_pose.to(local.dtype)
             contacts = Contacts(
                 points=transform_points(world, out_points), depths=out_depths,
                 normals=transform_vectors(world, normals), triangles=candidates[rows], bary=out_bary,
-                n_triangles=int(self.faces.shape[0]), n_candidates=int(candidates.numel()), method=self._reported_method,
+                n_triangles=int(self.faces.shape[0]), n_candidates=int(candidates.numel()), method=self.method,
                 timings={"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2},
             )
         self._remember(local, candidates, bary, depths, answer_normals, kind == KEPT)
@@ -474,26 +463,11 @@ class CoherentCollider:
         """With ``proxy`` and ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's contacts
         (which were the proxy's), as a non-deferred call gives them (world frame, triangles indexing the collider's
         mesh): the rows whose SDF depth is within that call's margin, in the order given."""
-        if self._pending is None:
+        if self._on_proxy is None:
             raise InputError("exact_contacts answers the last call's proxy contacts: call the collider (proxy=, deferred=True) first")
-        local, sdf_pose, faces, kind, bary, points, margin = self._pending
-        rows = torch.as_tensor(rows, dtype=torch.int64, device=faces.device).reshape(-1)
-        stats = CoherenceStats()
-        b, d, p, n, contact = self._exact_rows(local, faces[rows], kind[rows], bary[rows], points[rows], margin, stats)
-        self.last_stats.add(stats)
-        self.stats.add(stats)
-        world = sdf_pose.to(local.dtype)
-        return Contacts(points=transform_points(world, p), depths=d, normals=transform_vectors(world, n),
-                        triangles=faces[rows][contact], bary=b, n_triangles=int(self.faces.shape[0]),
-                        n_candidates=int(rows.numel()), method=self._reported_method)
-
-    def _exact_rows(self, local, faces, kind, bary, points, margin, stats):
-        """:meth:`_exact_answers` on the faces ``faces`` (S,), less those above ``margin``: bary (K, 3), depths (K,), points
-        (K, 3) and unit normals (K, 3), SDF frame, and which of the S rows they are ((S,) bool)."""
-        b, f, g = self._exact_answers(local, faces, bary, points, kind, margin, stats)
-        contact = f <= margin
-        b = b[contact]
-        return b, f[contact], bary_to_points(local[self.faces[faces[contact]]], b), F.normalize(g[contact], dim=-1), contact
+        contacts = self._on_proxy.exact_contacts(rows)
+        self.last_stats = self._on_proxy.last_stats
+        return contacts
 
     # -- broad phase ----------------------------------------------------------------------------
 
@@ -748,56 +722,6 @@ class CoherentCollider:
             depths[rows] = torch.where(better, f, f_low[rows])
             grads[rows] = torch.where(better.unsqueeze(-1), g, g_low[rows])
         return bary, depths, grads, screened
-
-    def _exact_answers(self, local: torch.Tensor, faces: torch.Tensor, bary: torch.Tensor, points: torch.Tensor,
-                       kind: torch.Tensor, margin: float, stats: CoherenceStats
-                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """With a proxy: the SDF's own answers on the faces ``faces`` (S,) whose proxy minimum came within the search
-        margin, from the proxy's answers ``bary`` (S, 3) at ``points`` (S, 3), answered as ``kind`` (S,) says (see the
-        class's ``proxy`` argument): bary (S, 3), the SDF's values (S,) and gradients (S, 3) there."""
-        tri = local[self.faces[faces]]
-        n = int(faces.shape[0])
-        out_bary, values, grads = bary.clone(), tri.new_empty((n,)), tri.new_empty((n, 3))
-        stats.exact_faces += n
-        if not n:
-            return out_bary, values, grads
-        exact = _CountingSDF(self.exact)
-        with torch.no_grad():
-            stored = self._exact_value[faces]
-            moved = (tri - self._exact_at[faces]).norm(dim=-1).amax(dim=-1)
-            kept = (kind == KEPT) & torch.isfinite(stored) & (moved <= self.reuse_distance)
-            k = kept.nonzero().squeeze(-1)
-            if k.numel():  # as the proxy's kept answers: the depth moved to first order along the normal
-                b, g = self._exact_bary[faces[k]], self._exact_grad[faces[k]]
-                out_bary[k], grads[k] = b, g
-                values[k] = moved_along_normal(stored[k], F.normalize(g, dim=-1), tri[k], self._exact_at[faces[k]], b)
-                stats.exact_kept += int(k.numel())
-            a = (~kept).nonzero().squeeze(-1)
-            if a.numel():
-                _, _, status = self.proxy.read(points[a])
-                f, g = _value_and_grad(exact, points[a])
-                gap = frank_wolfe_gap(tri[a], bary[a], g)
-                polish = ((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin)).nonzero().squeeze(-1)
-                b = bary[a]
-                if polish.numel():
-                    b[polish], f[polish], g[polish] = warm_step(exact, tri[a][polish], b[polish], (f[polish], g[polish]))
-                out = (status != 0).nonzero().squeeze(-1)  # 0: zoo.proxy.IN_BAND
-                if out.numel():  # out of the proxy's band: the method from scratch on the SDF
-                    stats.fallback += int(out.numel())
-                    unknown = torch.full(local.shape[:1], torch.nan, dtype=local.dtype, device=local.device)
-                    b_cold, f_cold = solve_candidates(self.exact, self.exact, local, self.faces[faces[a[out]]], unknown,
-                                                      margin, self.exact_method, self.iters, self.polish)
-                    lower = f_cold < f[out]
-                    rows = out[lower]
-                    if rows.numel():
-                        b[rows] = b_cold[lower]
-                        f[rows], g[rows] = _value_and_grad(exact, bary_to_points(tri[a[rows]], b[rows]))
-                out_bary[a], values[a], grads[a] = b, f, g
-                done = faces[a]
-                self._exact_bary[done], self._exact_value[done] = b.to(self._exact_bary), f.to(self._exact_value)
-                self._exact_grad[done], self._exact_at[done] = g.to(self._exact_grad), tri[a]
-        stats.exact_points += exact.queries
-        return out_bary, values, grads
 
     def _normals(self, points: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
         """Unit normals (K, 3) at the contacts (K, 3): the gradients a warm start took, queried elsewhere."""

@@ -1,0 +1,432 @@
+"""One SDF-mesh pair collided step after step on the SDF's baked proxy: queries that scale with the contacts kept.
+
+:class:`ProxyCollider` is what ``zoo.CoherentCollider(proxy=...)`` and a simulation's mesh pairs run. Every step
+is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF, each with one proxy read
+(:meth:`zoo.proxy.ProxySDF.read_numpy`, a fraction of a microsecond a point), and no Python loop over faces:
+
+1. **Clusters.** The faces are sorted along a Morton curve once and cut into clusters of ``CLUSTER`` faces, each
+   with a bounding ball. A cluster whose ball lies beyond the SDF's bounds grown by the search margin, or whose
+   proxy value at its centre, less L times its radius, exceeds the search margin, holds no contact (L: the
+   proxy's Lipschitz bound; f >= proxy - error_bound in band, and the proxy is a lower bound of f out of band).
+2. **Faces.** The same test on each face of the clusters kept, at its centroid and with its own ball.
+3. **Search.** A face whose lowest vertex is a KKT point on the proxy (its Frank-Wolfe gap below ``CONVERGED_GAP``
+   of the margin) has that vertex as its answer; one the screen (:func:`zoo.coherence.screen_bound`'s bound) puts
+   above the search margin is dropped. The others start from their last answer (a warm start) or, new, from the
+   lowest of ``PATTERN``'s inner points (one read for all), and take up to ``SEARCH_STEPS`` projected-gradient
+   steps, each a line search to where the steepest descent inside the triangle leaves it (two reads), leaving the
+   search as the gap or the screen settles them.
+4. **Contacts.** The faces whose proxy minimum is within the margin plus the proxy's ``error_bound`` are the
+   proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
+   reduces them to a manifold first): its value and gradient at the proxy's minimiser, one warm step on the SDF
+   (:func:`zoo.coherence.warm_step`) where its Frank-Wolfe gap exceeds ``POLISH_GAP_FRACTION`` of the margin, and
+   the method from scratch on the SDF where the proxy's minimiser lies out of its band (a penetration deeper than
+   the band). A face that moved less than ``reuse_distance`` since the SDF answered it keeps that answer, its
+   depth moved to first order along its normal (a persistent contact). Every contact's point, depth and normal
+   are the SDF's.
+
+Why clusters and not a carried bound per vertex (what :class:`zoo.CoherentCollider` does on the SDF itself): on
+the proxy a read costs what the bookkeeping of a carried bound would, so one read per cluster and per face near it
+is the cheaper proof, and it needs no state but the last answers (the search's warm starts and the kept contacts).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from .bounds import triangle_reach
+from .coherence import POLISH_GAP_FRACTION, CoherenceStats, moved_along_normal, warm_step
+from .collision import Contacts, mesh_tensors, solve_candidates
+from .errors import InputError
+from .geometry import invert_pose
+from .methods import iterations
+from .proxy import IN_BAND
+from .validation import as_pose, non_negative_float
+
+CLUSTER = 32  # faces per cluster of the first cull
+SEARCH_STEPS = 3  # projected-gradient steps on the proxy, at most, per face and call
+CONVERGED_GAP = 0.02  # a face whose Frank-Wolfe gap on the proxy is below this fraction of the margin stops searching
+BOUNDARY = 1e-9  # barycentric coordinates this small put a point on its triangle's boundary
+# The search's starts (barycentric): the vertices, the edges' midpoints and three inner points, so that a minimum in
+# any part of the face has a start near it; the last answer is added per face.
+PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5],
+                    [4 / 6, 1 / 6, 1 / 6], [1 / 6, 4 / 6, 1 / 6], [1 / 6, 1 / 6, 4 / 6], [1 / 3, 1 / 3, 1 / 3]])
+
+
+class ProxyCollider:
+    """An SDF-mesh pair on the SDF's proxy (see the module docstring); the interface of :class:`zoo.CoherentCollider`.
+
+    Args:
+        sdf: the SDF the contacts are answered on (any SDF protocol object).
+        mesh: a ``trimesh.Trimesh`` or a ``(vertices (V, 3), faces (F, 3))`` pair, fixed for the pair's life.
+        proxy: the SDF's :class:`zoo.proxy.ProxySDF`.
+        margin: m, contacts within it are reported.
+        method: the narrow phase that answers, on the SDF, a face whose proxy minimiser lies out of the band.
+        iters, polish: as for ``zoo.collide``, for that method.
+        reuse_distance: m; a face that moved less than this (relative to the SDF) since the SDF answered it keeps
+            that answer, its depth moved along its normal; default ``REUSE_FRACTION`` of the margin; 0 answers anew.
+        deferred: a call returns the proxy's contacts, and :meth:`exact_contacts` the SDF's for the rows kept.
+    """
+
+    def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *, iters: int | None = None,
+                 polish: bool = True, reuse_distance: float | None = None, deferred: bool = False):
+        from .coherence import REUSE_FRACTION
+
+        if not callable(getattr(proxy, "read", None)) or not hasattr(proxy, "error_bound"):
+            raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
+        self.sdf, self.proxy, self.method = sdf, proxy, method
+        self.iters, self.polish = iterations(method, iters), bool(polish)
+        self.margin = non_negative_float(margin, "margin")
+        self.reuse_distance = (REUSE_FRACTION * self.margin if reuse_distance is None
+                               else non_negative_float(reuse_distance, "reuse_distance"))
+        self.deferred = bool(deferred)
+        self.reported_method = f"proxy+{method}"
+        vertices, faces = mesh_tensors(mesh)
+        self.vertices, self.faces = vertices, faces  # torch, for the fallback and the caller
+        self._v = vertices.detach().cpu().numpy().astype(np.float64)  # (V, 3) mesh frame
+        self._f = faces.cpu().numpy()  # (F, 3)
+        corners = self._v[self._f]  # (F, 3, 3)
+        self._centroid = corners.mean(axis=1)  # (F, 3)
+        self._reach, self._ball = (t.numpy() for t in triangle_reach(torch.from_numpy(corners)))  # (F, 3), (F,)
+        self._clusters, self._cluster_centre, self._cluster_radius = _clusters(corners, self._centroid)
+        lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64).cpu()).reshape(3) for b in proxy.bounds)
+        self._lo, self._hi = lo, hi
+        self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
+        n = len(self._f)
+        self._last_bary = np.full((n, 3), np.nan)  # (F, 3) each face's last proxy answer (NaN: none)
+        self._exact_bary = np.zeros((n, 3))  # (F, 3) the SDF's last answer per face
+        self._exact_value = np.full(n, np.nan)  # (F,) NaN: none
+        self._exact_grad = np.zeros((n, 3))  # (F, 3)
+        self._exact_at = np.zeros((n, 3, 3))  # (F, 3, 3) the face, SDF frame, when the SDF answered it
+        self._pending = None
+        self.last_candidates = torch.zeros(0, dtype=torch.int64)
+
+    # -- a step --------------------------------------------------------------------------------------------------
+
+    def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
+        """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them (the proxy's,
+        when ``deferred``); ``margin`` replaces the collider's for this call."""
+        margin = self.margin if margin is None else non_negative_float(margin, "margin")
+        stats = CoherenceStats(steps=1)
+        t0 = time.perf_counter()
+        sdf_pose_t = as_pose(sdf_pose, torch.float64, "sdf_pose").cpu()
+        relative = (invert_pose(sdf_pose_t) @ as_pose(mesh_pose, torch.float64, "mesh_pose").cpu()).numpy()
+        sdf_pose = sdf_pose_t.numpy()
+        rotation, shift = relative[:3, :3], relative[:3, 3]
+        search = margin + self.proxy.error_bound
+        faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
+        t1 = time.perf_counter()
+        bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
+        hit = values <= search
+        faces, tri, bary, values, grads, status = faces[hit], tri[hit], bary[hit], values[hit], grads[hit], status[hit]
+        points = np.einsum("sv,svc->sc", bary, tri)
+        self._pending = (sdf_pose, faces, tri, bary, points, status, margin)
+        self.last_candidates = torch.from_numpy(faces)
+        t2 = time.perf_counter()
+        if self.deferred:
+            contacts = self._contacts(sdf_pose, faces, bary, points, values, _unit(grads))
+        else:
+            contacts = self._exact(np.arange(len(faces)), stats)
+        contacts.n_candidates = int(stats.candidates)
+        contacts.timings = {"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2}
+        self.last_stats = stats
+        self.stats.add(stats)
+        return contacts
+
+    def exact_contacts(self, rows) -> Contacts:
+        """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in
+        the order given, less those whose SDF depth is beyond that call's margin (world frame)."""
+        if self._pending is None:
+            raise InputError("exact_contacts answers the last call's proxy contacts: call the collider (proxy=, deferred=True) first")
+        stats = CoherenceStats()
+        contacts = self._exact(np.asarray(torch.as_tensor(rows).cpu(), dtype=np.int64).reshape(-1), stats)
+        self.last_stats.add(stats)
+        self.stats.add(stats)
+        return contacts
+
+    # -- culling -------------------------------------------------------------------------------------------------
+
+    def _near_faces(self, rotation: np.ndarray, shift: np.ndarray, search: float, stats: CoherenceStats):
+        """The faces (N,) that may come within ``search`` of the SDF, and the proxy at their vertices: (faces, values
+        (N, 3), gradients (N, 3, 3), status (N, 3), vertices (N, 3, 3) in the SDF's frame): clusters first, then each
+        face on its vertices' values (see the module docstring)."""
+        centres = self._cluster_centre @ rotation.T + shift
+        kept = self._may_touch(centres, self._cluster_radius, search, stats)
+        faces = self._clusters[kept].reshape(-1)
+        faces = faces[faces >= 0]
+        stats.faces_near = int(faces.size)
+        corner_ids = self._f[faces]  # (N, 3)
+        used = np.zeros(len(self._v), dtype=bool)
+        used[corner_ids] = True
+        vertices = np.flatnonzero(used)
+        row = np.empty(len(self._v), dtype=np.int64)
+        row[vertices] = np.arange(vertices.size)
+        local = self._v[vertices] @ rotation.T + shift
+        f, g, status = self._read(local, stats)
+        corner = row[corner_ids]  # (N, 3) rows of ``vertices``
+        values = f[corner]
+        lip = self.proxy.lipschitz
+        bound = np.maximum((values - lip * self._reach[faces]).max(axis=1), values.min(axis=1) - lip * self._ball[faces])
+        near = bound <= search
+        stats.faces_skipped = int(faces.size - near.sum())
+        corner = corner[near]
+        return faces[near], values[near], g[corner], status[corner], local[corner]
+
+    def _may_touch(self, centres: np.ndarray, radii: np.ndarray, search: float, stats: CoherenceStats) -> np.ndarray:
+        """(N,) bool: the balls (centres (N, 3), radii (N,)) that may hold a point within ``search`` of the SDF."""
+        outside = np.linalg.norm(np.maximum(self._lo - centres, 0) + np.maximum(centres - self._hi, 0), axis=-1)
+        rows = np.flatnonzero(outside <= radii + search)
+        out = np.zeros(len(centres), dtype=bool)
+        if rows.size:
+            values = self._read(centres[rows], stats)[0]
+            out[rows] = values - self.proxy.lipschitz * radii[rows] <= search
+        return out
+
+    def _read(self, points: np.ndarray, stats: CoherenceStats):
+        stats.cell_queries += int(points.shape[0])
+        return self.proxy._read(points)
+
+    # -- the search on the proxy ---------------------------------------------------------------------------------
+
+    def _search(self, faces, tri, vertex_values, vertex_grads, vertex_status, search: float, stats: CoherenceStats):
+        """Each face's minimum on the proxy (see the module docstring), from the proxy at its vertices (values (S, 3),
+        gradients (S, 3, 3), status (S, 3)): bary (S, 3), values (S,), gradients (S, 3), status (S,) int8 there."""
+        s = len(faces)
+        stats.candidates = s
+        rows = np.arange(s)
+        lowest = vertex_values.argmin(axis=1)
+        bary = np.eye(3)[lowest]
+        value, grad, state = vertex_values[rows, lowest], vertex_grads[rows, lowest], vertex_status[rows, lowest]
+        # the vertex test: a lowest vertex that is a KKT point is the answer; the screen drops what stays above
+        gap = _frank_wolfe_gap(tri, bary, grad)
+        stop = CONVERGED_GAP * max(search, 1e-9)
+        open_ = np.flatnonzero((gap > stop) & (value - gap <= search))
+        stats.screened = int(np.count_nonzero(value - gap > search))
+        if open_.size:
+            self._search_inside(faces[open_], tri[open_], open_, bary, value, grad, state, search, stats)
+        return bary, value, grad, state
+
+    def _search_inside(self, faces, tri, rows, bary, value, grad, state, search: float, stats: CoherenceStats) -> None:
+        """The search inside the faces ``faces`` (W,) (``rows`` (W,) of the arrays ``bary``, ``value``, ``grad``,
+        ``state``, which hold the lowest vertex's answer and are updated in place): from the last answer where the face
+        has one, else the lowest of the pattern's inner points, then up to ``SEARCH_STEPS`` descents."""
+        w = len(faces)
+        last = self._last_bary[faces]  # (W, 3), NaN where none
+        warm = np.isfinite(last[:, 0])
+        stats.warm, stats.cold = int(warm.sum()), int(w - warm.sum())
+        for chosen, starts in ((np.flatnonzero(warm), last[warm][:, None]),  # a warm face: its last answer
+                               (np.flatnonzero(~warm), PATTERN[None, 3:])):  # a cold one: the pattern inside it
+            if chosen.size:
+                self._lowest_start(tri[chosen], rows[chosen], np.broadcast_to(starts, (chosen.size,) + starts.shape[1:]),
+                                   bary, value, grad, state, stats)
+        active = np.arange(w)
+        stop = CONVERGED_GAP * max(search, 1e-9)
+        for _ in range(SEARCH_STEPS):
+            ra = rows[active]
+            gap = _frank_wolfe_gap(tri[active], bary[ra], grad[ra])
+            active = active[(gap > stop) & (value[ra] - gap <= search)]
+            if not active.size:
+                break
+            ra = rows[active]
+            b, v, gr, st = self._descend(tri[active], bary[ra], value[ra], grad[ra], stats)
+            lower = v < value[ra]
+            active, ra = active[lower], ra[lower]
+            bary[ra], value[ra], grad[ra], state[ra] = b[lower], v[lower], gr[lower], st[lower]
+        self._last_bary[faces] = bary[rows]
+
+    def _lowest_start(self, tri, rows, starts, bary, value, grad, state, stats) -> None:
+        """Read the proxy at the starts (W, K, 3) on the triangles (W, 3, 3), all in one read, and keep the lowest where
+        it is below the answer held in ``rows`` (W,) of ``bary``, ``value``, ``grad`` and ``state`` (updated in place)."""
+        w, k = starts.shape[:2]
+        f, g, status = self._read(np.einsum("wkv,wvc->wkc", starts, tri).reshape(-1, 3), stats)
+        f, g, status = f.reshape(w, k), g.reshape(w, k, 3), status.reshape(w, k)
+        best = f.argmin(axis=1)
+        at = np.arange(w)
+        lower = f[at, best] < value[rows]
+        r = rows[lower]
+        bary[r], value[r] = starts[at, best][lower], f[at, best][lower]
+        grad[r], state[r] = g[at, best][lower], status[at, best][lower]
+
+    def _descend(self, tri, bary, f0, g, stats):
+        """One line search along the steepest descent of the proxy inside each triangle (W, 3, 3) from ``bary`` (W, 3)
+        (f0 (W,) and g (W, 3) there), to where it leaves the triangle: -> bary, values, gradients, status at the lower
+        of its end and the parabola's minimiser (the parabola through f0, the slope and the end's value)."""
+        direction = _plane_descent(tri, bary, g)
+        leaving = direction < 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
+        reach = np.where(np.isfinite(reach), reach, 0.0)
+        end = np.clip(bary + reach[:, None] * direction, 0, None)
+        end /= end.sum(axis=1, keepdims=True)
+        p0, p1 = np.einsum("wv,wvc->wc", bary, tri), np.einsum("wv,wvc->wc", end, tri)
+        f1, g1, s1 = self._read(p1, stats)
+        slope = ((p1 - p0) * g).sum(axis=1)  # < 0 along a descent
+        curvature = f1 - f0 - slope
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(curvature > 0, np.clip(-slope / (2 * curvature), 0, 1), 1.0)
+        t = np.where(np.isfinite(t), t, 0.0)
+        mid = bary + (t * reach)[:, None] * direction
+        mid = np.clip(mid, 0, None)
+        mid /= mid.sum(axis=1, keepdims=True)
+        fm, gm, sm = self._read(np.einsum("wv,wvc->wc", mid, tri), stats)
+        end_lower = f1 < fm
+        pick = end_lower[:, None]
+        return (np.where(pick, end, mid), np.where(end_lower, f1, fm), np.where(pick, g1, gm), np.where(end_lower, s1, sm))
+
+    # -- the SDF's own answers -----------------------------------------------------------------------------------
+
+    def _exact(self, rows: np.ndarray, stats: CoherenceStats) -> Contacts:
+        """The SDF's contacts at the rows ``rows`` of the last call's proxy contacts (see the module docstring)."""
+        sdf_pose, faces, tri, bary, points, status, margin = self._pending
+        faces, tri, bary, status = faces[rows], tri[rows], bary[rows].copy(), status[rows]
+        n = len(faces)
+        stats.exact_faces += n
+        values, grads = np.zeros(n), np.zeros((n, 3))
+        stored = self._exact_value[faces]
+        moved = np.linalg.norm(tri - self._exact_at[faces], axis=-1).max(axis=-1) if n else np.zeros(0)
+        kept = np.isfinite(stored) & (moved <= self.reuse_distance)
+        k = np.flatnonzero(kept)
+        if k.size:  # a persistent contact: its depth moved to first order along its normal
+            b, g = self._exact_bary[faces[k]], self._exact_grad[faces[k]]
+            bary[k], grads[k] = b, g
+            values[k] = moved_along_normal(*(torch.from_numpy(a) for a in (stored[k], _unit(g), tri[k], self._exact_at[faces[k]], b))).numpy()
+            stats.exact_kept += int(k.size)
+        a = np.flatnonzero(~kept)
+        if a.size:
+            bary[a], values[a], grads[a] = self._answer(tri[a], bary[a], status[a], faces[a], margin, stats)
+            done = faces[a]
+            self._exact_bary[done], self._exact_value[done], self._exact_grad[done] = bary[a], values[a], grads[a]
+            self._exact_at[done] = tri[a]
+        contact = values <= margin
+        bary, values, normals = bary[contact], values[contact], _unit(grads[contact])
+        return self._contacts(sdf_pose, faces[contact], bary, np.einsum("kv,kvc->kc", bary, tri[contact]), values, normals)
+
+    def _answer(self, tri, bary, status, faces, margin, stats):
+        """The SDF's answers on faces (A, 3, 3) from the proxy's minimisers ``bary`` (A, 3) (``status`` (A,) there):
+        bary (A, 3), values (A,), gradients (A, 3)."""
+        tri_t, bary_t = torch.from_numpy(tri), torch.from_numpy(bary)
+        dtype = torch.float64 if getattr(self.sdf, "dtype", None) == torch.float64 else torch.float32
+        points = torch.einsum("av,avc->ac", bary_t, tri_t)
+        with torch.no_grad():
+            f, g = self.sdf.value_and_grad(points.to(dtype))
+        f, g = torch.as_tensor(f).reshape(-1).double(), torch.as_tensor(g).reshape(-1, 3).double()
+        stats.exact_points += int(points.shape[0])
+        gap = torch.from_numpy(_frank_wolfe_gap(tri, bary, g.numpy()))
+        polish = ((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin)).nonzero().squeeze(-1)
+        if polish.numel():
+            counted = _Counting(self.sdf, dtype)
+            with torch.no_grad():
+                bary_t[polish], f[polish], g[polish] = (x.double() for x in warm_step(
+                    counted, tri_t[polish].to(dtype), bary_t[polish].to(dtype), (f[polish].to(dtype), g[polish].to(dtype))))
+            stats.exact_points += counted.queries
+        out = np.flatnonzero(status != IN_BAND)
+        if out.size:  # deeper than the band: the method from scratch on the SDF
+            stats.fallback += int(out.size)
+            local = torch.from_numpy(tri[out].reshape(-1, 3)).to(dtype)
+            unknown = torch.full(local.shape[:1], torch.nan, dtype=dtype)
+            with torch.no_grad():
+                b_cold, f_cold = solve_candidates(self.sdf, self.sdf, local, torch.arange(local.shape[0]).reshape(-1, 3),
+                                                  unknown, margin, self.method, self.iters, self.polish)
+                lower = (f_cold.double() < f[out]).nonzero().squeeze(-1)
+                if lower.numel():
+                    rows = torch.from_numpy(out)[lower]
+                    bary_t[rows] = b_cold[lower].double()
+                    fr, gr = self.sdf.value_and_grad(torch.einsum("av,avc->ac", bary_t[rows], tri_t[rows]).to(dtype))
+                    f[rows], g[rows] = torch.as_tensor(fr).reshape(-1).double(), torch.as_tensor(gr).reshape(-1, 3).double()
+        return bary_t.numpy(), f.numpy(), g.numpy()
+
+    def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> Contacts:
+        """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""
+        rotation, shift = sdf_pose[:3, :3], sdf_pose[:3, 3]
+        dtype = self.vertices.dtype
+        as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(dtype)  # noqa: E731
+        return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
+                        triangles=torch.from_numpy(np.ascontiguousarray(faces, dtype=np.int64)), bary=as_t(bary),
+                        n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+
+
+class _Counting:
+    """An SDF asked in ``dtype``, counting the points (values and gradients alike)."""
+
+    def __init__(self, sdf, dtype):
+        self.sdf, self.dtype, self.queries, self.bounds = sdf, dtype, 0, sdf.bounds
+
+    def __call__(self, points):
+        self.queries += int(points.shape[0])
+        return self.sdf(points.to(self.dtype))
+
+    def value_and_grad(self, points):
+        self.queries += int(points.shape[0])
+        return self.sdf.value_and_grad(points.to(self.dtype))
+
+
+# -- geometry in numpy (a step's few faces: numpy's per-call cost is a fraction of torch's) ---------------------------
+
+
+def _clusters(corners: np.ndarray, centroids: np.ndarray, size: int = CLUSTER):
+    """Faces (F,) cut into clusters along a Morton curve of their centroids: (clusters (C, size) face indices, -1
+    padding; centres (C, 3); radii (C,) of balls holding each cluster's corners)."""
+    n = len(centroids)
+    if not n:
+        return np.zeros((0, size), dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+    lo, hi = centroids.min(axis=0), centroids.max(axis=0)
+    q = ((centroids - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.int64)
+    order = np.argsort(_morton(q), kind="stable")
+    padded = np.full(-(-n // size) * size, -1, dtype=np.int64)
+    padded[:n] = order
+    clusters = padded.reshape(-1, size)
+    pts = corners[np.where(clusters >= 0, clusters, clusters[:, :1])].reshape(len(clusters), -1, 3)  # pad: a member
+    centres = (pts.min(axis=1) + pts.max(axis=1)) / 2
+    radii = np.linalg.norm(pts - centres[:, None], axis=-1).max(axis=1)
+    return clusters, centres, radii
+
+
+def _morton(q: np.ndarray) -> np.ndarray:
+    """Morton codes (N,) of 10-bit integer coordinates (N, 3)."""
+    code = np.zeros(len(q), dtype=np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + (2 - axis))
+    return code
+
+
+def _frank_wolfe_gap(tri: np.ndarray, bary: np.ndarray, grads: np.ndarray) -> np.ndarray:
+    """Frank-Wolfe's gap (W,) at ``bary`` (W, 3) on ``tri`` (W, 3, 3) with gradients ``grads`` (W, 3) there
+    (numpy's :func:`zoo.coherence.frank_wolfe_gap`)."""
+    scores = np.einsum("wc,wvc->wv", grads, tri)
+    return (scores * bary).sum(axis=1) - scores.min(axis=1)
+
+
+def _plane_descent(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """-g projected onto each triangle's plane (W, 3, 3) in barycentric coordinates (W, 3) summing to 0; along the
+    edge a boundary point lies on where it would leave across it; zero at a vertex or on a needle (numpy's
+    ``zoo.coherence._plane_descent``)."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    a11, a12, a22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    r1, r2 = -(g * e1).sum(1), -(g * e2).sum(1)
+    det = a11 * a22 - a12 * a12
+    flat = det > 1e-6 * a11 * a22
+    det = np.where(flat, det, 1.0)
+    x, y = (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
+    direction = np.where(flat[:, None], np.stack([-(x + y), x, y], axis=1), 0.0)
+    blocked = (bary <= BOUNDARY) & (direction < 0)
+    i = blocked.argmax(axis=1)
+    j, k = (i + 1) % 3, (i + 2) % 3
+    rows = np.arange(len(tri))
+    edge = tri[rows, k] - tri[rows, j]
+    along = -(g * edge).sum(1) / np.maximum((edge * edge).sum(1), np.finfo(np.float64).tiny)
+    on_edge = np.zeros_like(bary)
+    on_edge[rows, k], on_edge[rows, j] = along, -along
+    count = blocked.sum(axis=1)[:, None]
+    return np.where(count == 1, on_edge, np.where(count > 1, 0.0, direction))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(norm > 0, norm, 1.0)
