@@ -3,6 +3,8 @@
 For every scenario (scenes/sim-*.toml on the real meshes) and every way of finding its contacts:
 
 - ``amortized+coherence``: the default (``zoo.CoherentCollider``: bounds and answers carried over steps);
+- ``amortized+proxy``: the default on the SDF's baked proxy (``proxy=True``, :mod:`zoo.proxy_collider`: culling and
+  search on the proxy, the NeuralSDF answers the contacts kept);
 - ``amortized``: the same detector, every step from scratch (``zoo.collide``);
 - ``fw-10``: Frank-Wolfe, 10 iterations, every step from scratch (the paper's baseline);
 - ``voxel-fw``: Frank-Wolfe on a 256^3 voxel grid of the SDF, from scratch;
@@ -51,6 +53,7 @@ SCENES = {  # scenario -> scene file; the scenario's control (a torque on the nu
 }
 METHODS = {
     "amortized+coherence": {"method": "amortized", "coherence": True},
+    "amortized+proxy": {"method": "amortized", "coherence": True, "proxy": True},
     "amortized": {"method": "amortized", "coherence": False},
     "fw-10": {"method": "fw", "coherence": False},
     "voxel-fw": {"method": "voxel-fw", "coherence": False},
@@ -65,6 +68,9 @@ COLLIDE_MS_MAX = 10.0  # median collision time per step with coherence, Mug-Rack
 SPEEDUP_OVER_FW = 5.0  # whole simulation against FW-10 contacts, same scenes
 BOLT_STEPS_PER_S = 10.0
 CHECK_OVER_FW, CHECK_OVER_SCRATCH, CHECK_APART_M = 5.0, 3.0, 2e-3
+# issue 37's bars: a whole step, MuJoCo included, one torch thread
+STEP_MS_MAX = {"mug-rack": 4.0, "bottle-holder": 4.0}
+STEPS_PER_S_MIN = {"bolt-nut": 50.0, "gear-gear": 50.0}
 YARDSTICK_ITERS = 100  # Frank-Wolfe iterations of the common penetration yardstick
 YARDSTICK_STEPS = 3  # the run's deepest steps (by its own depths) measured on it
 
@@ -190,6 +196,21 @@ def speed_bars(rows: list[dict]) -> dict:
     return bars
 
 
+def step_bars(rows: list[dict], method: str = "amortized+proxy") -> dict:
+    """Issue 37's bars on ``method``'s runs: ms a whole step (median) and steps a second, each with what was measured."""
+    by = {r["scenario"]: r for r in rows if r["method"] == method and "error" not in r}
+    bars = {}
+    for scenario, most in STEP_MS_MAX.items():
+        if scenario in by:
+            ms = by[scenario]["step_ms"]["median"]
+            bars[scenario] = {"step_ms_median": ms, "bar_ms": most, "passed": ms <= most}
+    for scenario, least in STEPS_PER_S_MIN.items():
+        if scenario in by:
+            rate = 1e3 / by[scenario]["step_ms"]["median"]
+            bars[scenario] = {"steps_per_s": rate, "bar_steps_per_s": least, "passed": rate >= least}
+    return bars
+
+
 def plot(rows: list[dict], path: Path) -> None:
     """Time per step (median) against the deepest penetration, one marker per method, one colour per scenario."""
     try:
@@ -199,7 +220,7 @@ def plot(rows: list[dict], path: Path) -> None:
         import matplotlib.pyplot as plt
     except ImportError:
         return
-    markers = {"amortized+coherence": "o", "amortized": "s", "fw-10": "^", "voxel-fw": "v", "mujoco-sdf-plugin": "*", "coacd-native": "D"}
+    markers = {"amortized+coherence": "o", "amortized+proxy": "P", "amortized": "s", "fw-10": "^", "voxel-fw": "v", "mujoco-sdf-plugin": "*", "coacd-native": "D"}
     scenarios = sorted({r["scenario"] for r in rows})
     colours = dict(zip(scenarios, plt.cm.tab10.colors))
     fig, ax = plt.subplots(figsize=(8, 5.5))
@@ -240,7 +261,7 @@ def run_sim_benchmark(out_dir: Path, seconds: float = 0.2, scenarios=None, metho
     def write() -> None:  # after every run: a long bench stopped early keeps what it measured
         machine = {**machine_info(), **({"threads": threads} if threads else {})}  # the runs' threads, not this process's
         report = {"seconds": seconds, "machine": machine, "rows": rows, "check_mug_hanging": three_way_check(rows),
-                  "speed_bars": speed_bars(rows), "command": "python -m sdfzoo.benches.sim_bench " + " ".join(sys.argv[1:])}
+                  "speed_bars": speed_bars(rows), "step_bars": step_bars(rows), "command": "python -m sdfzoo.benches.sim_bench " + " ".join(sys.argv[1:])}
         atomic_write_text(path, json.dumps(report, indent=1))
 
     for scenario in scenarios:
@@ -325,7 +346,8 @@ def main(argv=None) -> None:
     report = json.loads(path.read_text())
     for row in format_table(report):
         print(" | ".join(row))
-    print(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"]}, indent=1))
+    print(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"],
+                      "step_bars": report.get("step_bars", {})}, indent=1))
     print(f"written: {path}")
 
 

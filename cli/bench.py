@@ -147,7 +147,8 @@ def _run_sim(opts: BenchOptions) -> None:
     table = _table(f"simulations, {report['seconds']} s each (torch {machine['torch']}, {machine['threads']} thread(s), {machine['cpu']})",
                    TABLE_HEADER, format_table(report))
     console.print(table)
-    console.print_json(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"]}))
+    console.print_json(json.dumps({"check_mug_hanging": report["check_mug_hanging"], "speed_bars": report["speed_bars"],
+                                   "step_bars": report.get("step_bars", {})}))
     console.print(f"written: {path} and sim.png beside it")
 
 

@@ -17,8 +17,9 @@ is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF
    search as the gap or the screen settles them.
 4. **Contacts.** The faces whose proxy minimum is within the margin plus the proxy's ``error_bound`` are the
    proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
-   reduces them to a manifold first): its value and gradient at the proxy's minimiser, one warm step on the SDF
-   (:func:`zoo.coherence.warm_step`) where its Frank-Wolfe gap exceeds ``POLISH_GAP_FRACTION`` of the margin, and
+   reduces them to a manifold first): its value and gradient at the proxy's minimiser; where the SDF's Frank-Wolfe
+   gap there exceeds ``POLISH_GAP_FRACTION`` of the margin, one step along the SDF's steepest descent inside the
+   face, its length chosen on the proxy, and the SDF's value and gradient at its end, kept where lower; and
    the method from scratch on the SDF where the proxy's minimiser lies out of its band (a penetration deeper than
    the band). A face that moved less than ``reuse_distance`` since the SDF answered it keeps that answer, its
    depth moved to first order along its normal (a persistent contact). Every contact's point, depth and normal
@@ -37,7 +38,7 @@ import numpy as np
 import torch
 
 from .bounds import triangle_reach
-from .coherence import POLISH_GAP_FRACTION, CoherenceStats, moved_along_normal, warm_step
+from .coherence import POLISH_GAP_FRACTION, CoherenceStats, moved_along_normal
 from .collision import Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
 from .geometry import invert_pose
@@ -48,6 +49,7 @@ from .validation import as_pose, non_negative_float
 CLUSTER = 32  # faces per cluster of the first cull
 SEARCH_STEPS = 3  # projected-gradient steps on the proxy, at most, per face and call
 CONVERGED_GAP = 0.02  # a face whose Frank-Wolfe gap on the proxy is below this fraction of the margin stops searching
+POLISH_SAMPLES = 8  # points on the proxy along the SDF's steepest descent that choose a polishing step's length
 BOUNDARY = 1e-9  # barycentric coordinates this small put a point on its triangle's boundary
 # The search's starts (barycentric): the vertices, the edges' midpoints and three inner points, so that a minimum in
 # any part of the face has a start near it; the last answer is added per face.
@@ -320,11 +322,12 @@ class ProxyCollider:
         gap = torch.from_numpy(_frank_wolfe_gap(tri, bary, g.numpy()))
         polish = ((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin)).nonzero().squeeze(-1)
         if polish.numel():
-            counted = _Counting(self.sdf, dtype)
-            with torch.no_grad():
-                bary_t[polish], f[polish], g[polish] = (x.double() for x in warm_step(
-                    counted, tri_t[polish].to(dtype), bary_t[polish].to(dtype), (f[polish].to(dtype), g[polish].to(dtype))))
-            stats.exact_points += counted.queries
+            rows = polish.numpy()
+            b, f1, g1 = self._polish(tri[rows], bary_t[polish].numpy(), g[polish].numpy(), dtype, stats)
+            lower = torch.from_numpy(f1 < f[polish].numpy())
+            better = polish[lower]
+            bary_t[better], f[better], g[better] = torch.from_numpy(b[lower.numpy()]), torch.from_numpy(f1[lower.numpy()]), \
+                torch.from_numpy(g1[lower.numpy()])
         out = np.flatnonzero(status != IN_BAND)
         if out.size:  # deeper than the band: the method from scratch on the SDF
             stats.fallback += int(out.size)
@@ -341,6 +344,25 @@ class ProxyCollider:
                     f[rows], g[rows] = torch.as_tensor(fr).reshape(-1).double(), torch.as_tensor(gr).reshape(-1, 3).double()
         return bary_t.numpy(), f.numpy(), g.numpy()
 
+    def _polish(self, tri, bary, g, dtype, stats):
+        """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
+        SDF's gradient there), as far as the lowest of ``POLISH_SAMPLES`` points along it on the proxy (one read), and
+        the SDF's value and gradient at that point (one query): -> bary (P, 3), values (P,), gradients (P, 3) there."""
+        direction = _plane_descent(tri, bary, g)
+        leaving = direction < 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
+        reach = np.where(np.isfinite(reach), reach, 0.0)
+        t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
+        along = np.clip(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None], 0, None)
+        along /= along.sum(axis=-1, keepdims=True)  # (P, S, 3)
+        values = self._read(np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
+        end = along[np.arange(len(tri)), values.argmin(axis=1)]
+        with torch.no_grad():
+            f, grad = self.sdf.value_and_grad(torch.from_numpy(np.einsum("pv,pvc->pc", end, tri)).to(dtype))
+        stats.exact_points += len(tri)
+        return end, torch.as_tensor(f).reshape(-1).double().numpy(), torch.as_tensor(grad).reshape(-1, 3).double().numpy()
+
     def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> Contacts:
         """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""
         rotation, shift = sdf_pose[:3, :3], sdf_pose[:3, 3]
@@ -349,21 +371,6 @@ class ProxyCollider:
         return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
                         triangles=torch.from_numpy(np.ascontiguousarray(faces, dtype=np.int64)), bary=as_t(bary),
                         n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
-
-
-class _Counting:
-    """An SDF asked in ``dtype``, counting the points (values and gradients alike)."""
-
-    def __init__(self, sdf, dtype):
-        self.sdf, self.dtype, self.queries, self.bounds = sdf, dtype, 0, sdf.bounds
-
-    def __call__(self, points):
-        self.queries += int(points.shape[0])
-        return self.sdf(points.to(self.dtype))
-
-    def value_and_grad(self, points):
-        self.queries += int(points.shape[0])
-        return self.sdf.value_and_grad(points.to(self.dtype))
 
 
 # -- geometry in numpy (a step's few faces: numpy's per-call cost is a fraction of torch's) ---------------------------
