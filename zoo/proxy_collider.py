@@ -13,8 +13,8 @@ is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF
    of the margin) has that vertex as its answer; one the screen (:func:`zoo.coherence.screen_bound`'s bound) puts
    above the search margin is dropped. The others start from their last answer (a warm start) or, new, from the
    lowest of ``PATTERN``'s inner points (one read for all), and take up to ``SEARCH_STEPS`` projected-gradient
-   steps, each a line search to where the steepest descent inside the triangle leaves it (two reads), leaving the
-   search as the gap or the screen settles them.
+   steps (``WARM_SEARCH_STEPS`` for a warm one), each a line search to where the steepest descent inside the
+   triangle leaves it (two reads), leaving the search as the gap or the screen settles them.
 4. **Contacts.** The faces whose proxy minimum is within the margin plus the proxy's ``error_bound`` are the
    proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
    reduces them to a manifold first): its value and gradient at the proxy's minimiser; where the SDF's Frank-Wolfe
@@ -47,7 +47,9 @@ from .proxy import IN_BAND
 from .validation import as_pose, non_negative_float
 
 CLUSTER = 32  # faces per cluster of the first cull
-SEARCH_STEPS = 3  # projected-gradient steps on the proxy, at most, per face and call
+# projected-gradient steps on the proxy, at most, per face and call: a face new to the search takes several; one
+# searched at the last step goes on from its answer there, so one step a call carries its descent along
+SEARCH_STEPS, WARM_SEARCH_STEPS = 3, 1
 CONVERGED_GAP = 0.02  # a face whose Frank-Wolfe gap on the proxy is below this fraction of the margin stops searching
 POLISH_SAMPLES = 8  # points on the proxy along the SDF's steepest descent that choose a polishing step's length
 BOUNDARY = 1e-9  # barycentric coordinates this small put a point on its triangle's boundary
@@ -229,7 +231,9 @@ class ProxyCollider:
                                    bary, value, grad, state, stats)
         active = np.arange(w)
         stop = CONVERGED_GAP * max(search, 1e-9)
-        for _ in range(SEARCH_STEPS):
+        for step in range(SEARCH_STEPS):
+            if step == WARM_SEARCH_STEPS:
+                active = active[~warm[active]]
             ra = rows[active]
             gap = _frank_wolfe_gap(tri[active], bary[ra], grad[ra])
             active = active[(gap > stop) & (value[ra] - gap <= search)]

@@ -1,0 +1,129 @@
+"""zoo.proxy_collider: the proxy path's numpy passes held against slow, obviously correct references.
+
+Each face's answer against a brute-force minimum of the SDF over a dense barycentric grid of the face (every face
+whose minimum lies within the margin is reported, at a depth no further from that minimum than the search's
+tolerance); the clusters against their faces; the numpy descent direction against coherence's torch one; empty
+inputs give empty contacts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_coherence import plane_mesh, pose, rotation
+
+import zoo
+from zoo.coherence import _plane_descent
+from zoo.geometry import barycentric_grid
+from zoo.proxy import bake_proxy
+from zoo.proxy_collider import CLUSTER, ProxyCollider, _clusters, _plane_descent as plane_descent_np
+
+
+def brute_minima(sdf, tri: torch.Tensor, resolution: int = 40) -> torch.Tensor:
+    """The lowest of ``sdf`` over a barycentric grid of ``resolution`` per edge on each triangle (F, 3, 3): (F,)."""
+    grid = barycentric_grid(resolution, dtype=torch.float64)  # (G, 3)
+    points = torch.einsum("gv,fvc->fgc", grid, tri.double()).reshape(-1, 3)
+    with torch.no_grad():
+        values = torch.as_tensor(sdf(points.float())).double().reshape(tri.shape[0], -1)
+    return values.amin(dim=1)
+
+
+def world_triangles(mesh, sdf_pose, mesh_pose) -> torch.Tensor:
+    """The mesh's triangles (F, 3, 3) in the SDF's frame."""
+    vertices, faces = (torch.as_tensor(np.asarray(a)) for a in mesh)
+    mesh_pose = np.eye(4) if mesh_pose is None else mesh_pose
+    relative = torch.linalg.inv(torch.as_tensor(sdf_pose, dtype=torch.float64)) @ torch.as_tensor(mesh_pose, dtype=torch.float64)
+    local = vertices.double() @ relative[:3, :3].T + relative[:3, 3]
+    return local[faces]
+
+
+def check_against_brute_force(sdf, collider, mesh, sdf_pose, mesh_pose, margin: float, tolerance: float,
+                              resolution: int = 40, fine: bool = True) -> int:
+    """Every face whose brute-force minimum is within ``margin - tolerance`` is a contact; every contact's depth is within
+    ``tolerance`` above its face's brute-force minimum (and not below what the grid's spacing allows); returns the
+    contacts counted. ``fine``: the grid is fine enough that no point of a face lies more than ``tolerance`` below its
+    samples (checked too). Faces wholly outside the SDF's bounds grown by the margin are left out (no contact there)."""
+    contacts = collider(sdf_pose, mesh_pose)
+    tri = world_triangles(mesh, sdf_pose, mesh_pose)
+    lo, hi = (torch.as_tensor(b, dtype=torch.float64) - s * margin for b, s in zip(sdf.bounds, (1, -1)))
+    inside = ((tri.amax(dim=1) >= lo) & (tri.amin(dim=1) <= hi)).all(dim=-1)
+    minima = torch.full(tri.shape[:1], torch.inf, dtype=torch.float64)
+    minima[inside] = brute_minima(sdf, tri[inside], resolution)
+    reported = set(contacts.triangles.tolist())
+    must = set(torch.nonzero(minima <= margin - tolerance).squeeze(-1).tolist())
+    assert must <= reported, f"faces missed: {sorted(must - reported)[:10]}"
+    depths = contacts.depths.double()
+    brute = minima[contacts.triangles]
+    assert float((depths - brute).max()) <= tolerance
+    if fine:
+        assert float((brute - depths).max()) <= tolerance
+    return len(contacts)
+
+
+def test_sphere_over_a_plane_against_brute_force():
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3)
+    mesh = plane_mesh(max_edge=0.01)
+    collider = ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw")
+    counted = 0
+    for step in range(6):
+        sdf_pose = pose(rotation((0, 0, 1), 0.3 * step), (0.002 * step, -0.001 * step, 0.0498 - 2e-4 * step))
+        counted += check_against_brute_force(sphere, collider, mesh, sdf_pose, None, 1e-3, 2e-5)
+    assert counted > 6 and collider.stats.exact_faces == counted
+
+
+@pytest.mark.slow
+def test_the_mug_on_the_rack_against_brute_force():
+    """The mugs NeuralSDF (its proxy on a 2 mm grid, for a quick bake) on the rack's faces within 1 cm of it, resting
+    and sinking: no face within the margin is missed, no depth above its face's brute-force minimum by 0.1 mm."""
+    from zoo.scenes import load_collision_scene
+
+    mug = zoo.load("mugs").shape("hoi4d_mug_0001")
+    scene = load_collision_scene("demo-mug-rack")
+    start = np.asarray(scene.sdf_pose, dtype=np.float64)
+    vertices, faces = np.asarray(scene.mesh.vertices, dtype=np.float32), np.asarray(scene.mesh.faces)
+    with torch.no_grad():  # the brute force's cost is per face: the faces near the mug only
+        near = (torch.as_tensor(mug(world_triangles((vertices, faces), start, None).mean(dim=1).float())) < 0.01).numpy()
+    mesh = (vertices, faces[near])
+    proxy = bake_proxy(mug, margin=scene.margin, spacing=2e-3)
+    collider = ProxyCollider(mug, mesh, proxy, margin=scene.margin, method="amortized")
+    counted = 0
+    for step in range(2):
+        sdf_pose = start.copy()
+        sdf_pose[:3, 3] += np.array([0.0, 0.0, -8e-4 * step])
+        counted += check_against_brute_force(mug, collider, mesh, sdf_pose, None, scene.margin, 1e-4, resolution=12, fine=False)
+    assert counted > 10
+
+
+def test_empty_inputs_give_empty_contacts():
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=2e-3)
+    empty = ProxyCollider(sphere, (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)), proxy, margin=1e-3, method="fw")
+    assert len(empty(None, None)) == 0
+    far = ProxyCollider(sphere, plane_mesh(), proxy, margin=1e-3, method="fw", deferred=True)
+    assert len(far(pose(None, (0.0, 0.0, 1.0)), None)) == 0
+    assert len(far.exact_contacts(torch.zeros(0, dtype=torch.int64))) == 0
+
+
+def test_clusters_hold_every_face_once_within_their_balls():
+    rng = np.random.default_rng(0)
+    corners = rng.normal(size=(1000, 3, 3))
+    clusters, centres, radii = _clusters(corners, corners.mean(axis=1))
+    members = clusters[clusters >= 0]
+    assert sorted(members.tolist()) == list(range(1000)) and clusters.shape[1] == CLUSTER
+    for c in range(len(clusters)):
+        faces = clusters[c][clusters[c] >= 0]
+        assert np.linalg.norm(corners[faces].reshape(-1, 3) - centres[c], axis=1).max() <= radii[c] + 1e-12
+
+
+def test_numpy_descent_direction_is_coherences():
+    g = torch.Generator().manual_seed(3)
+    tri = torch.randn(500, 3, 3, generator=g, dtype=torch.float64)
+    bary = torch.rand(500, 3, generator=g, dtype=torch.float64)
+    bary[:100, 0] = 0  # on an edge
+    bary[100:150, :2] = 0  # at a vertex
+    bary = bary / bary.sum(-1, keepdim=True)
+    grads = torch.randn(500, 3, generator=g, dtype=torch.float64)
+    expected = _plane_descent(tri, bary, grads).numpy()
+    assert np.allclose(plane_descent_np(tri.numpy(), bary.numpy(), grads.numpy()), expected, atol=1e-9)
