@@ -1,10 +1,21 @@
 """The baked narrow-band proxy (zoo.proxy): bake time, memory and error per shape, and simulations with and without it.
 
 ``--bake``: for each shape (the mugs' hoi4d_mug_0001 at margin 1 mm, the bolts' factory_bolt_m16 and the gears'
-industreal_gear_large at 0.1 mm, the margins of their scenes), a fresh bake (written to the cache, replacing what was
-there, so that ``--sim`` reads it): its seconds, memory,
-bricks, cells in band, the error against the NeuralSDF on held-out points and the culling bound, and what a read costs
-against the NeuralSDF's value and gradient (microseconds a point, 8 and 1,000 points a call).
+industreal_gear_large at 0.1 mm, the margins of their scenes), a fresh bake of every brick (``lazy=False``, written to
+the cache, replacing what was there): its seconds, memory, bricks, cells in band, the error against the NeuralSDF on
+held-out points and the culling bound, and what a read costs against the NeuralSDF's value and gradient (microseconds
+a point, 8 and 1,000 points a call).
+
+``--bake --lazy``: the lazy proxy instead (``cached_proxy(lazy=True)``, written to the cache afresh, so that ``--sim``
+reads it: a simulation's ``proxy=True`` is the lazy one): its creation's seconds and memory, the brick centres
+evaluated, the error on its sample of bricks; then what baking a brick lazily costs (milliseconds a brick: reads at
+the centres of bricks not baked yet, one brick a read and 32 a read, each way a brick can be baked: coarse to fine,
+and all its nodes in one call, alternating; and the SDF points each asked a brick), what the bricks took in memory,
+and the write of what was baked (``flush``).
+
+``--reads``: what the numpy read costs a call (``read_numpy``, or ``_read`` in code that predates it) on the mug's
+proxy at 10 and 500 points: near the surface (all in band) and uniform in the mug's bounds (most out of band),
+float32 and float64; the bricks those points need are baked before the timing.
 
 ``--sim``: each scenario of benches/sim_scenarios.py named (its scene, control and check) run three ways in one process,
 stepping in turn so that the machine's load falls on all alike: the full path (amortized, no coherence), the default
@@ -13,6 +24,7 @@ collision and step time per step (median, mean), contacts, deepest penetration, 
 path's (and along the bolt, for bolt-nut), the scenario's check, and the collider's counts (NeuralSDF points).
 
     python -m investigations proxy --bake --out out/proxy-bake.json
+    python -m investigations proxy --bake --lazy --reads --out out/proxy-lazy.json
     python -m investigations proxy --sim mug-rack --sim bolt-nut --out out/proxy-sim.json
 """
 
@@ -45,11 +57,11 @@ def per_call_us(fn, points: torch.Tensor, repeats: int) -> float:
 def bake(model: str, shape: str, margin: float) -> dict:
     """A fresh bake of ``model``'s ``shape`` for ``margin``: its costs and error (see the module docstring)."""
     import zoo
-    from zoo.proxy import IN_BAND, cached_proxy
+    from zoo.proxy import BRICK, IN_BAND, cached_proxy
 
     sdf = zoo.load(model).shape(shape)
-    proxy = cached_proxy(sdf, margin=margin, progress=True, rebake=True)
-    cells = (proxy.status[:-512] == IN_BAND).nonzero().squeeze(-1)
+    proxy = cached_proxy(sdf, margin=margin, progress=True, rebake=True, lazy=False)
+    cells = (proxy.status[BRICK**3:] == IN_BAND).nonzero().squeeze(-1)  # row 0 is the coarse row
     g = torch.Generator().manual_seed(1)
     lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in sdf.bounds)
     reads = {}
@@ -61,6 +73,114 @@ def bake(model: str, shape: str, margin: float) -> dict:
             "lipschitz": proxy.lipschitz, "bake_s": proxy.bake_seconds, "memory_mb": proxy.memory_bytes / 2**20,
             "bricks": proxy.n_baked, "cells_in_band": int(cells.numel()), "error_m": proxy.error,
             "error_bound_m": proxy.error_bound, "reads": reads}
+
+
+class CountingSDF:
+    """``sdf`` counting the points it is asked (``points``)."""
+
+    def __init__(self, sdf):
+        self.sdf, self.points = sdf, 0
+
+    def __call__(self, points):
+        self.points += len(points)
+        return self.sdf(points)
+
+
+def bake_lazily(model: str, shape: str, margin: float, bricks_per_way: int = 96, seed: int = 0) -> dict:
+    """A fresh lazy proxy of ``model``'s ``shape`` for ``margin``: its creation, and what a lazily baked brick costs
+    (see the module docstring)."""
+    import zoo
+    from zoo.proxy import BRICK, cached_proxy
+
+    sdf = zoo.load(model).shape(shape)
+    started = time.perf_counter()
+    proxy = cached_proxy(sdf, margin=margin, rebake=True, lazy=True)
+    created_s = time.perf_counter() - started
+    row = {"model": model, "shape": shape, "margin_m": margin, "spacing_m": proxy.spacing, "band_m": proxy.band,
+           "create_s": proxy.bake_seconds, "create_and_write_s": created_s, "memory_mb": proxy.memory_bytes / 2**20,
+           "bricks": int(proxy.n_bricks.prod()), "centres_evaluated": int(torch.isfinite(proxy.coarse_value).sum()),
+           "sample_bricks": proxy.n_baked, "pending_bricks": proxy.n_pending, "error_m": proxy.error,
+           "error_bound_m": proxy.error_bound}
+    # bricks not baked yet that may hold band cells, in random order; a read at a brick's centre bakes that brick
+    waiting = (proxy.brick_of == -1).nonzero().squeeze(-1)
+    near = waiting[proxy.coarse_value[waiting].double().abs() <= proxy.lipschitz * 3**0.5 / 2 * BRICK * proxy.spacing + proxy.band]
+    order = near[torch.randperm(near.numel(), generator=torch.Generator().manual_seed(seed))]
+    nb = proxy.n_bricks
+    ijk = torch.stack([order // (nb[1] * nb[2]), (order // nb[2]) % nb[1], order % nb[2]], dim=-1)
+    centres = (proxy.lo + (ijk * BRICK + BRICK / 2).double() * proxy.spacing).numpy()
+    times = {True: {1: [], 32: []}, False: {1: [], 32: []}}
+    points_asked = {True: 0, False: 0}
+    counting = CountingSDF(proxy.sdf)
+    proxy.sdf = counting
+    at, rows_before, memory_before = 0, proxy.n_baked, proxy.memory_bytes
+    for group in (1, 32):
+        for _ in range(bricks_per_way // group):
+            for coarse_to_fine in (True, False):  # alternating, so that the machine's load falls on both alike
+                proxy.coarse_to_fine = coarse_to_fine
+                points = centres[at:at + group]
+                at += group
+                asked = counting.points
+                started = time.perf_counter()
+                proxy.read_numpy(points)
+                times[coarse_to_fine][group].append((time.perf_counter() - started) / group)
+                points_asked[coarse_to_fine] += counting.points - asked
+    proxy.coarse_to_fine, proxy.sdf = True, counting.sdf
+    row["lazy_brick_ms"] = {("coarse_to_fine" if way else "all_nodes"): {
+        f"{group}_a_read": {"median": 1e3 * float(np.median(t)), "mean": 1e3 * float(np.mean(t)), "reads": len(t)}
+        for group, t in by_group.items()} for way, by_group in times.items()}
+    row["sdf_points_per_brick"] = {("coarse_to_fine" if way else "all_nodes"): n / (at / 2)
+                                   for way, n in points_asked.items()}
+    row["lazy_bricks_baked"] = proxy.n_baked - rows_before
+    row["memory_per_brick_kb"] = (proxy.memory_bytes - memory_before) / max(proxy.n_baked - rows_before, 1) / 1024
+    started = time.perf_counter()
+    row["flush_wrote"] = proxy.flush()
+    row["flush_s"] = time.perf_counter() - started
+    return row
+
+
+def surface_points(sdf, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) float64 points within about 0.2 mm of ``sdf``'s surface: random points near it moved onto it by two
+    Newton steps, then off it along the normal by up to 0.2 mm."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in sdf.bounds)
+    p = lo + (hi - lo) * torch.rand(40 * n, 3, generator=g)
+    with torch.no_grad():
+        p = p[sdf(p).abs() < 0.005][:2 * n]
+        for _ in range(2):
+            d, grad = sdf.value_and_grad(p)
+            p = p - (d / grad.square().sum(-1)).unsqueeze(-1) * grad
+        d, grad = sdf.value_and_grad(p)
+    p = p + 2e-4 * (2 * torch.rand(p.shape[0], 1, generator=g) - 1) * torch.nn.functional.normalize(grad, dim=-1)
+    return p[d.abs() < 1e-4][:n].double().numpy()
+
+
+def read_costs(model: str = "mugs", shape: str = "hoi4d_mug_0001", margin: float = 1e-3, repeats: int = 3000) -> dict:
+    """Microseconds a call of the proxy's numpy read (``read_numpy``, or ``_read`` before it) at 10 and 500 points,
+    near the surface and uniform in the bounds, float32 and float64 (median of ``repeats`` calls)."""
+    import zoo
+    from zoo.proxy import IN_BAND, cached_proxy
+
+    sdf = zoo.load(model).shape(shape)
+    proxy = cached_proxy(sdf, margin=margin)
+    read = getattr(proxy, "read_numpy", None) or proxy._read
+    lo, hi = (b.double().numpy() for b in sdf.bounds)
+    kinds = {"near the surface": surface_points(sdf, 500),
+             "uniform in the bounds": lo + (hi - lo) * np.random.default_rng(0).random((500, 3))}
+    out = {"function": read.__name__}
+    for kind, points in kinds.items():
+        read(points)  # bakes the bricks these points need (a lazy proxy), outside the timing
+        out[kind] = {"in_band_fraction": float((read(points)[2] == IN_BAND).mean())}
+        for n in (10, 500):
+            for dtype in (np.float32, np.float64):
+                p = np.ascontiguousarray(points[:n], dtype=dtype)
+                read(p)
+                times = []
+                for _ in range(repeats):
+                    started = time.perf_counter()
+                    read(p)
+                    times.append(time.perf_counter() - started)
+                out[kind][f"{n}_{np.dtype(dtype).name}_us"] = 1e6 * float(np.median(times))
+    return out
 
 
 def refine_fixed_meshes(sim, times: int) -> int:
@@ -137,6 +257,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bake", action="store_true", help="bake each shape afresh and measure it")
     parser.add_argument("--shape", action="append", default=[], help="with --bake: only these shapes (names)")
+    parser.add_argument("--lazy", action="store_true", help="with --bake: the lazy proxy, and what a lazily baked brick costs")
+    parser.add_argument("--reads", action="store_true", help="what the numpy read costs a call on the mug's proxy")
     parser.add_argument("--sim", action="append", default=[], help="a scenario of benches/sim_scenarios.py, run three ways")
     parser.add_argument("--steps", type=int, default=None, help="steps per run (default: the scene's seconds)")
     parser.add_argument("--way", action="append", default=[], choices=sorted(WAYS),
@@ -152,11 +274,29 @@ def main(argv: list[str] | None = None) -> None:
         for model, shape, margin in SHAPES:
             if args.shape and shape not in args.shape:
                 continue
+            if args.lazy:
+                row = bake_lazily(model, shape, margin)
+                report["bake"].append(row)
+                ways = ", ".join(f"{way} {t['1_a_read']['median']:.1f} ms a brick alone, {t['32_a_read']['median']:.1f} in 32 "
+                                 f"({row['sdf_points_per_brick'][way]:.0f} SDF points a brick)"
+                                 for way, t in row["lazy_brick_ms"].items())
+                print(f"{shape} lazy: created in {row['create_s']:.2f} s ({row['create_and_write_s']:.2f} s with the write), "
+                      f"{row['memory_mb']:.1f} MB, {row['centres_evaluated']} of {row['bricks']} brick centres, "
+                      f"{row['pending_bricks']} bricks to bake; error on {row['sample_bricks']} bricks: median "
+                      f"{1e6 * row['error_m']['median']:.1f} um, p99 {1e6 * row['error_m']['p99']:.1f}, max "
+                      f"{1e6 * row['error_m']['max']:.1f}, bound {1e6 * row['error_bound_m']:.1f} um; {ways}; "
+                      f"{row['memory_per_brick_kb']:.1f} kB a brick; flush {row['flush_s']:.2f} s", flush=True)
+                continue
             row = bake(model, shape, margin)
             report["bake"].append(row)
             print(f"{shape}: {row['bake_s']:.1f} s, {row['memory_mb']:.1f} MB, spacing {1e3 * row['spacing_m']:.3f} mm, "
                   f"error median {1e6 * row['error_m']['median']:.1f} um, p99 {1e6 * row['error_m']['p99']:.1f}, "
                   f"max {1e6 * row['error_m']['max']:.1f}, bound {1e6 * row['error_bound_m']:.1f} um", flush=True)
+    if args.reads:
+        report["reads"] = read_costs()
+        print(f"reads ({report['reads']['function']}): " + "; ".join(
+            f"{kind}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items() if k.endswith("_us"))
+            for kind, row in report["reads"].items() if kind != "function"), flush=True)
     if args.sim:
         from sdfzoo.benches.sim_scenarios import require_meshes
 

@@ -1,7 +1,8 @@
 """zoo.proxy: the narrow-band baked proxy of an SDF, its cache, and CoherentCollider(proxy=) on it.
 
 The proxy is held against the analytic SDFs (exact answers) and the mugs NeuralSDF on held-out points; its lower
-bounds out of band against the true values; the cache keyed, reused, refused when corrupt and rebuilt; and the
+bounds out of band against the true values; the lazy proxy against the eager one (the same answers, bricks baked only
+where read, saved, reloaded and baked on); the cache keyed, reused, refused when corrupt and rebuilt; and the
 proxy-screened collider's contacts against the full CoherentCollider and zoo.collide at the same poses.
 """
 
@@ -22,7 +23,10 @@ from zoo.errors import ChecksumError, DataError, InputError
 from zoo.geometry import invert_pose, transform_points
 from zoo.proxy import (
     ABOVE,
+    BRICK,
+    ERROR_BRICKS,
     IN_BAND,
+    NOT_READY,
     PROXY_FILE,
     UNKNOWN,
     bake_proxy,
@@ -184,8 +188,9 @@ def test_the_cache_is_keyed_reused_and_refuses_a_corrupt_file(mug, tmp_path, mon
     again = cached_proxy(mug, margin=1e-3, spacing=3e-3)  # reused: no bake
     assert torch.equal(again.nodes, first.nodes) and torch.equal(again.status, first.status)
     assert again.error == first.error and again.error_bound == first.error_bound
+    created = first.nodes.clone()
     probe = mug_surface_points(mug, 200)
-    assert torch.equal(again(probe), first(probe))
+    assert torch.equal(again(probe), first(probe))  # both bake the same bricks lazily
     monkeypatch.undo()
     monkeypatch.setenv("ZOO_CACHE", str(tmp_path))
 
@@ -202,7 +207,7 @@ def test_the_cache_is_keyed_reused_and_refuses_a_corrupt_file(mug, tmp_path, mon
         load_proxy(folders[0])
     with pytest.warns(UserWarning, match="refused the cached proxy"):
         rebuilt = cached_proxy(mug, margin=1e-3, spacing=3e-3)
-    assert torch.equal(rebuilt.nodes, first.nodes)
+    assert torch.equal(rebuilt.nodes, created)  # as first was when created
     load_proxy(folders[0])  # verified again
     # no checksums (a write interrupted between the file and its sums): refused, rebuilt
     (folders[0] / "SHA256SUMS").unlink()
@@ -227,6 +232,182 @@ def test_an_uncached_sdf_bakes_without_writing(tmp_path, monkeypatch):
     monkeypatch.setenv("ZOO_CACHE", str(tmp_path))
     proxy = cached_proxy(zoo.Sphere(0.02), margin=1e-3, spacing=1e-3)
     assert proxy.n_baked > 0 and not (tmp_path / "proxies").exists()
+
+
+# -- lazy baking ----------------------------------------------------------------------------------
+
+
+def bricks_of(proxy, points: torch.Tensor) -> torch.Tensor:
+    """The flat brick indices (N,) of ``points`` (N, 3) in the proxy's region."""
+    cell = torch.floor((points.double() - proxy.lo) / proxy.spacing).long()
+    brick = cell // BRICK
+    nb = proxy.n_bricks
+    return (brick[:, 0] * nb[1] + brick[:, 1]) * nb[2] + brick[:, 2]
+
+
+def probe_points(sdf, n: int, seed: int) -> torch.Tensor:
+    """(2n, 3) float32 points: n within 2 mm of the surface of ``sdf`` (sphere-like), n uniform in its bounds grown
+    by 1 cm on each side (many far outside the baked region or deep inside)."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = (b.double() for b in sdf.bounds)
+    far = lo - 0.01 + (hi - lo + 0.02) * torch.rand(n, 3, generator=g, dtype=torch.float64)
+    return torch.cat([shell_points(sdf, n, 2e-3, seed=seed), far.float()])
+
+
+@pytest.mark.parametrize("sdf", [zoo.Sphere(0.05, center=(0.01, 0.0, -0.02)), zoo.Torus(0.04, 0.012)],
+                         ids=["sphere", "torus"])
+def test_lazy_reads_equal_eager_reads(sdf):
+    eager = bake_proxy(sdf, margin=1e-3, spacing=1e-3)
+    lazy = bake_proxy(sdf, margin=1e-3, spacing=1e-3, lazy=True)
+    assert lazy.lazy and not eager.lazy and lazy.n_baked == ERROR_BRICKS < eager.n_baked
+    assert lazy.error["samples"] > 10_000 and lazy.error["max"] <= 2 * eager.error["max"]
+    # coarse to fine down to bricks: the centres far from the surface are not evaluated
+    assert int(torch.isfinite(lazy.coarse_value).sum()) < lazy.coarse_value.numel()
+    for seed, dtype in ((0, torch.float32), (1, torch.float64)):
+        points = probe_points(sdf, 10_000, seed).to(dtype)
+        ours, theirs = lazy.read(points), eager.read(points)
+        for a, b in zip(ours, theirs):
+            assert a.dtype == b.dtype and torch.equal(a, b)
+        status = theirs[2]
+        assert all(int((status == s).sum()) > 500 for s in (IN_BAND, ABOVE, UNKNOWN))
+        assert torch.equal(lazy(points), eager(points))
+        assert all(torch.equal(a, b) for a, b in zip(lazy.value_and_grad(points), eager.value_and_grad(points)))
+    # everything baked: the same bricks, each with the same cells in band and the same coarse grid
+    lazy.bake_all()
+    assert lazy.n_pending == 0 and lazy.n_baked == eager.n_baked and not bool((lazy.brick_of == NOT_READY).any())
+    assert torch.equal(lazy.coarse_value, eager.coarse_value) and torch.equal(lazy.coarse_grad, eager.coarse_grad)
+    bricks = eager.baked_bricks
+    assert set(lazy.baked_bricks.tolist()) == set(bricks.tolist())
+    cells = BRICK**3
+    assert torch.equal(lazy.status.reshape(-1, cells)[lazy.brick_of[bricks]],
+                       eager.status.reshape(-1, cells)[eager.brick_of[bricks]])
+
+
+def test_lazy_bakes_only_the_bricks_read():
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3, lazy=True)
+    sample = set(proxy.baked_bricks.tolist())
+    assert len(sample) == ERROR_BRICKS and proxy.lazy_bricks == 0
+    on_surface = shell_points(sphere, 4000, 0.0, seed=5)
+    pending = ~torch.tensor([b in sample for b in bricks_of(proxy, on_surface).tolist()])
+    on_surface = on_surface[pending]
+    # a few points in one brick: that brick alone
+    first = on_surface[:1] + torch.tensor([[0.0, 0.0, 0.0], [1e-4, 0.0, 0.0], [0.0, -1e-4, 1e-4]])
+    wanted = set(bricks_of(proxy, first).tolist())
+    assert len(wanted) == 1
+    proxy.read(first)
+    assert set(proxy.baked_bricks.tolist()) == sample | wanted and proxy.lazy_bricks == 1
+    # far outside the region and deep inside the sphere: no brick there holds band cells, none is baked
+    far = torch.tensor([[0.2, 0.0, 0.0], [0.0, -0.3, 0.1], [0.0, 0.0, 0.0], [0.01, 0.02, -0.005]])
+    values, _, status = proxy.read(far)
+    assert proxy.lazy_bricks == 1 and status.tolist() == [ABOVE, ABOVE, UNKNOWN, UNKNOWN]
+    assert bool((values <= sphere(far) + 1e-6).all())
+    # many bricks in one read: each of them once, in one batch
+    many = on_surface[:300]
+    wanted |= set(bricks_of(proxy, many).tolist())
+    proxy.read(many)
+    assert set(proxy.baked_bricks.tolist()) == sample | wanted and proxy.n_baked == len(sample | wanted)
+    assert proxy.lazy_bricks == len(wanted) > 20
+    proxy.read(many)  # again: nothing new
+    assert proxy.lazy_bricks == len(wanted)
+    assert proxy.nodes.numel() == (proxy.n_baked + 1) * 9**3
+    # the rows' storage doubles when full: one brick a read grows it a few times, not at every read
+    capacities = set()
+    for point in on_surface[300:600]:
+        proxy.read(point[None])
+        capacities.add(proxy._nodes_np.size)
+    assert len(capacities) <= 3 and proxy._nodes_np.size <= 2 * proxy.nodes.numel()
+    # bake_at: the bricks of the points given, as a read there; bake_all: every brick left
+    assert proxy.bake_at(on_surface[600:]) > 0 and proxy.bake_at(on_surface[600:]) == 0
+    before = proxy.n_baked
+    assert proxy.bake_all() == proxy.n_baked - before > 0 and proxy.n_pending == 0
+
+
+def test_a_saved_lazy_proxy_reloads_keeps_its_bricks_and_bakes_more(tmp_path):
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3, lazy=True)
+    folder = tmp_path / "sphere"
+    assert not proxy.flush(force=True)  # no cache folder: nothing to write to
+    proxy.attach_cache(folder, key="k")
+    assert proxy.flush(force=True) and not proxy.flush()  # written; then nothing new to write
+    points = shell_points(sphere, 2000, 1e-3, seed=8)
+    proxy.read(points[:1000])
+    assert proxy.lazy_bricks > 0 and proxy.flush() and not proxy.flush()
+    assert sorted(p.name for p in folder.iterdir()) == sorted([PROXY_FILE, "SHA256SUMS"])
+    again = load_proxy(folder, key="k", sdf=sphere)
+    assert again.lazy and again.n_baked == proxy.n_baked and again.lazy_bricks == 0
+    for name in ("brick_of", "nodes", "status", "coarse_value", "coarse_grad", "baked_bricks"):
+        assert np.array_equal(getattr(again, name).numpy(), getattr(proxy, name).numpy(), equal_nan=True), name
+    assert again.error == proxy.error and again.error_bound == proxy.error_bound
+    assert torch.equal(again(points[:1000]), proxy(points[:1000])) and again.lazy_bricks == 0  # its bricks, kept
+    assert all(torch.equal(a, b) for a, b in zip(again.read(points[1000:]), proxy.read(points[1000:])))
+    assert again.lazy_bricks > 0  # and more, baked as the first one bakes them
+    # loaded without its SDF: what is baked reads, a read that needs a new brick raises
+    bare = load_proxy(folder)
+    assert torch.equal(bare(points[:1000]), proxy(points[:1000]))
+    with pytest.raises(InputError, match="without its SDF"):
+        bare(points[1000:])
+
+
+def test_the_cache_keeps_a_lazy_proxys_bricks_and_refuses_a_corrupt_file(mug, tmp_path, monkeypatch):
+    first = cached_proxy(mug, margin=1e-3, spacing=4e-3, cache=tmp_path)
+    folder = first.folder
+    assert first.lazy and first.n_baked == ERROR_BRICKS and (folder / PROXY_FILE).exists()
+    eager_key = proxy_key(mug, {"spacing": 4e-3, "band": first.band, "lipschitz": first.lipschitz, "lazy": False})
+    assert first.key != eager_key  # lazy is part of the key
+    probe = mug_surface_points(mug, 300)
+    values = first(probe)
+    baked = first.n_baked
+    assert baked > ERROR_BRICKS and first.flush()
+
+    import zoo.proxy
+
+    def no_bake(*args, **kwargs):
+        raise AssertionError("baked again")
+
+    monkeypatch.setattr(zoo.proxy, "bake_proxy", no_bake)
+    again = cached_proxy(mug, margin=1e-3, spacing=4e-3, cache=tmp_path)  # what first baked, no creation
+    assert again.n_baked == baked and again.folder == folder
+    assert torch.equal(again(probe), values) and again.lazy_bricks == 0
+    lo, hi = (b.double() for b in mug.bounds)
+    elsewhere = (lo + (hi - lo) * torch.rand(3000, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)).float()
+    again(elsewhere)
+    assert again.lazy_bricks > 0  # it goes on baking lazily
+    monkeypatch.undo()
+    zoo.proxy._flush_at_exit()  # what atexit runs: the new bricks written
+    assert load_proxy(folder, again.key).n_baked == again.n_baked > baked
+
+    flip_byte(folder / PROXY_FILE, offset=-10)
+    with pytest.raises(ChecksumError):
+        load_proxy(folder)
+    with pytest.warns(UserWarning, match="refused the cached proxy"):
+        rebuilt = cached_proxy(mug, margin=1e-3, spacing=4e-3, cache=tmp_path)
+    assert rebuilt.n_baked == ERROR_BRICKS  # created afresh, and written
+    assert load_proxy(folder, rebuilt.key).n_baked == ERROR_BRICKS
+
+
+def test_read_numpy_equals_read(sphere_proxy):
+    sphere, proxy = sphere_proxy
+    points = probe_points(sphere, 2000, seed=9)
+    for dtype in (torch.float32, torch.float64):
+        p = points.to(dtype)
+        ours = proxy.read_numpy(p.numpy())
+        for a, b in zip(ours, proxy.read(p)):
+            assert np.array_equal(a, b.numpy())
+        assert ours[0].dtype == ours[1].dtype == p.numpy().dtype and ours[2].dtype == np.int8
+        assert ours[0].shape == (4000,) and ours[1].shape == (4000, 3) and ours[2].shape == (4000,)
+        assert ours[1].flags.c_contiguous
+    inside = points[:5].numpy()  # all in the region (the one-test path) against the same points among others
+    assert all(np.array_equal(a, b[:5]) for a, b in zip(proxy.read_numpy(inside), proxy.read_numpy(points.numpy())))
+    as_ints = proxy.read_numpy(np.array([[0, 0, 0], [1, 0, 0]]))  # another dtype: read as float64
+    assert as_ints[0].dtype == np.float64 and as_ints[2].tolist() == [UNKNOWN, ABOVE]
+    empty = proxy.read_numpy(np.zeros((0, 3), np.float32))
+    assert empty[0].shape == (0,) and empty[1].shape == (0, 3) and empty[2].dtype == np.int8
+    with pytest.raises(InputError, match="shape"):
+        proxy.read_numpy(np.zeros((4, 2)))
+    with pytest.raises(InputError, match="finite"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy's, casting NaN to a cell
+        proxy.read_numpy(np.array([[np.nan, 0.0, 0.0]]))
 
 
 # -- the collider on a proxy ----------------------------------------------------------------------

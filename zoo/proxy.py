@@ -4,7 +4,7 @@ A NeuralSDF costs 5-11 us a point; a simulation step asks it at every face near 
 screening, the search), most of which end far from any contact. :class:`ProxySDF` samples the SDF once on
 a regular grid of spacing ``h``, but only in *bricks* (8^3 cells, 9^3 nodes: border nodes are stored in
 both bricks, so a cell never straddles two) that hold cells within ``band`` of the surface, and reads it
-back by trilinear interpolation, all points at once (torch, no Python loop over points or bricks).
+back by trilinear interpolation, all points at once (numpy, no Python loop over points or bricks).
 
 Which cells are baked (:func:`bake_proxy`). A coarse-to-fine pass with a Lipschitz-safe test: f at the
 centre of each brick of the SDF's bounds (grown by the band); a block of half-diagonal r whose centre
@@ -14,7 +14,16 @@ into 8 and tested again, down to single cells. The kept cells' nodes are then ev
 distinct node). A dropped block leaves, over all its points, the lower bound f(centre) - L r, which is
 above ``band`` where f(centre) > 0 (outside) and far below -``band`` where it is < 0 (deep inside).
 
-Reading (:meth:`ProxySDF.read`), for points (N, 3) in the SDF's frame:
+Lazy baking (``bake_proxy(lazy=True)``, the default of :func:`cached_proxy`). The same test, but only the
+coarse part up front: the brick centres are reached coarse to fine too (blocks of 2^k bricks whose centre
+passes the test are split, from one block over the whole region down to bricks), so that the bricks far
+from the surface are not evaluated; their centres (and a brick's gradient's neighbours) are evaluated when
+a read first lands there. A read whose points fall in bricks not made ready yet makes them ready first: their
+coarse values, then the bake of those that may hold band cells, all bricks of the read in one batch, exactly
+as :func:`bake_proxy` bakes them, so a lazy proxy answers as the eagerly baked one does. The error is
+measured at creation on ``ERROR_BRICKS`` random bricks that may hold band cells, baked then.
+
+Reading (:meth:`ProxySDF.read`, :meth:`ProxySDF.read_numpy`), for points (N, 3) in the SDF's frame:
 
 * in a baked cell: the trilinear interpolant of the nodes and its exact gradient (status 0, ``IN_BAND``);
 * in a dropped block: a lower bound as the value, f(c) - L |p - c| from the centre c of the point's brick
@@ -29,7 +38,8 @@ none of them a node) and kept with it (``proxy.error``: median, p99, max, in the
 culling uses, ``proxy.error_bound``, is ``ERROR_SAFETY`` times the maximum measured. Where the proxy is
 in band, f >= proxy - error_bound, so a face whose proxy minimum exceeds ``margin + error_bound`` has no
 contact within ``margin``; :class:`zoo.CoherentCollider` (``proxy=``) culls and searches on the proxy at
-that margin and asks the SDF itself only at the faces that survive.
+that margin and asks the SDF itself only at the faces that survive. A lazy proxy measures it in the bricks
+of its sample only (``ERROR_BRICKS`` of them), not in every brick it bakes later.
 
 Default spacing (:func:`default_spacing`): the smaller of the margin and the bounds' longest side over
 ``SPACING_DIVISIONS`` = 256: the mugs' hoi4d_mug_0001 (a 12.6 cm box, margin 1 mm) 0.49 mm; the M16 bolt
@@ -38,18 +48,23 @@ plus ``BAND_CELLS`` = 2 cells (:func:`default_band`), so that a contact at the m
 two cells, are read in band.
 
 Baked proxies of a model's shapes are cached on disk (:func:`cached_proxy`): keyed by the model's
-``sdf.safetensors`` sha256, the shape's name, codes and similarity, the settings and ``PROXY_VERSION``;
-one folder per key under ``zoo.hub.zoo_cache_dir()/proxies`` holding ``proxy.safetensors`` (written
-atomically) and its ``SHA256SUMS``, verified on load; a corrupt or incomplete one is refused
-(:class:`zoo.errors.ChecksumError` or :class:`zoo.errors.DataError`) and baked again.
+``sdf.safetensors`` sha256, the shape's name, codes and similarity, the settings (``lazy`` among them) and
+``PROXY_VERSION``; one folder per key under ``zoo.hub.zoo_cache_dir()/proxies`` holding ``proxy.safetensors``
+(written atomically) and its ``SHA256SUMS``, verified on load; a corrupt or incomplete one is refused
+(:class:`zoo.errors.ChecksumError` or :class:`zoo.errors.DataError`) and baked again. A lazy proxy from the
+cache writes what it baked since back there (:meth:`ProxySDF.flush`, and at the process's exit), and goes on
+baking lazily when loaded again.
 """
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import json
 import math
+import time
 import warnings
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -59,23 +74,31 @@ from .errors import ChecksumError, DataError, InputError, ZooError
 from .sdf import check_sdf
 from .validation import as_points, non_negative_float, positive_float
 
-PROXY_VERSION = 1  # bump when the bake or the file changes: old cache entries are then not found
+PROXY_VERSION = 2  # bump when the bake or the file changes: old cache entries are then not found (2: lazy bricks)
 BRICK = 8  # cells per brick side
 NODES = BRICK + 1  # nodes per brick side (border nodes stored in both neighbours)
 SPACING_DIVISIONS = 256  # default spacing: at most the bounds' longest side over this
 BAND_CELLS = 2  # default band: the margin plus this many cells
 ERROR_SAMPLES = 16384  # held-out points the error is measured on
+ERROR_BRICKS = 64  # a lazy proxy's error is measured in this many random bricks, baked at its creation
 ERROR_SAFETY = 2.0  # error_bound = this times the largest error measured
 CHUNK = 1 << 15  # points per SDF call while baking
+BAKE_BATCH = 4096  # bricks baked together by bake_proxy(lazy=False) (bounds its memory; nodes shared within one)
 IN_BAND, ABOVE, UNKNOWN = 0, 1, -1  # read()'s status, and a cell's in ``status``
-COARSE = 2  # the cells of the row standing for every brick not baked
+COARSE = 2  # the cells of row 0, standing for every brick that holds no band cell
+NOT_READY = -1  # ``brick_of`` of a lazy proxy's brick whose coarse values or bake are still to come
 PROXY_FILE = "proxy.safetensors"
 
-_CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.int64)  # (8, 3)
-_NODE_OFFSETS = (_CORNERS * torch.tensor([NODES * NODES, NODES, 1])).sum(-1)  # (8,) into a brick's flat nodes
-_NODE_OFFSETS_NP = _NODE_OFFSETS.numpy()
-_CELL_STRIDES = np.array([BRICK * BRICK, BRICK, 1])
-_NODE_STRIDES = np.array([NODES * NODES, NODES, 1])
+_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])  # (8, 3), corner 4i + 2j + k
+_CELL_STRIDES = np.array([BRICK * BRICK, BRICK, 1])  # a cell's (3,) place in its brick -> its index there
+_NODE_STRIDES = np.array([NODES * NODES, NODES, 1])  # a node's (3,) place in its brick -> its index there
+_LOCAL_STRIDES = np.stack([_CELL_STRIDES, _NODE_STRIDES], axis=1)  # (3, 2): a cell's index, and its first node's
+_CORNER_OFFSETS = (_CORNERS @ _NODE_STRIDES)[:, None]  # (8, 1): a cell's corner nodes from its first
+_AROUND = np.array([[0, 0, 0], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]])  # a brick, 6 neighbours
+# every node and cell centre of a brick in half cells from its first node (nodes even, centres odd): (729 + 512, 3)
+_BRICK_HALF_POINTS = np.concatenate([2 * np.indices((NODES,) * 3).reshape(3, -1).T,
+                                     2 * np.indices((BRICK,) * 3).reshape(3, -1).T + 1])
+_HALF_DIAGONAL = math.sqrt(3) / 2  # a cube's half-diagonal over its side
 
 
 def default_spacing(bounds, margin: float) -> float:
@@ -91,6 +114,16 @@ def default_band(margin: float, spacing: float) -> float:
     return margin + BAND_CELLS * spacing
 
 
+class _ReadConstants:
+    """What a read needs in the points' dtype, cast once rather than at every call."""
+
+    def __init__(self, proxy: ProxySDF, dtype: np.dtype):
+        t = dtype.type
+        self.lo, self.hi = proxy._lo_np.astype(dtype), proxy._hi_np.astype(dtype)
+        self.inv_h, self.band, self.lipschitz = t(1 / proxy.spacing), t(proxy.band), t(proxy.lipschitz)
+        self.tiny = np.finfo(dtype).tiny
+
+
 class ProxySDF:
     """A narrow-band, brick-sparse, trilinear copy of an SDF (see the module docstring); an SDF itself.
 
@@ -99,61 +132,131 @@ class ProxySDF:
         spacing: h, the grid spacing (m). band: the half-width of the baked band (m).
         lipschitz: the bound L the bake's tests assumed of the SDF (and that a collider carries bounds with).
         n_bricks: (3,) int64 bricks per axis of the region; ``n_bricks * BRICK`` cells.
-        brick_of: (nbx * nby * nbz,) int64, each brick's row (x-major); B (the row after the B baked ones) where
-            not baked.
-        nodes: ((B + 1) * 9^3,) float32, the rows' node values, row-major then x, y, z (0 where not baked).
-        status: ((B + 1) * 8^3,) int8 per cell of each row: ``IN_BAND`` (its 8 nodes baked), ``ABOVE`` (a block
-            holding it was dropped with f above the band), ``UNKNOWN`` (dropped below it), ``COARSE`` (row B).
-        coarse_value: (nbx * nby * nbz,) float32, f at each brick's centre.
-        coarse_grad: (nbx * nby * nbz, 3) float32, central differences of f at the brick centres.
         bounds: the source SDF's bounds (two (3,) float32 tensors).
         error: {"median", "p99", "max", "samples"} the error against the source on held-out points in band (m).
-        error_bound: ``ERROR_SAFETY`` times the largest error measured (m).
-        settings: {"spacing", "band", "lipschitz", "brick", "version"}.
-        bake_seconds: how long the bake took (0 when loaded).
+        error_bound: ``ERROR_SAFETY`` times the largest error measured (m); a lazy proxy's is measured in its sample
+            of ``ERROR_BRICKS`` bricks, not in the bricks it bakes later.
+        settings: {"spacing", "band", "lipschitz", "brick", "version", "lazy"}.
+        bake_seconds: how long the bake (a lazy proxy's creation) took (0 when loaded).
+        lazy: whether bricks are baked when first read (else all were baked up front).
+        sdf: the SDF a lazy proxy bakes from (None where loaded without it: a read that needs a bake then raises).
+        coarse_to_fine: how a lazy read bakes a brick: coarse to fine as :func:`bake_proxy` (True, the default:
+            the faster, docs/proxy.md) or all its nodes and cell centres in one SDF call (False).
+        folder, key: the cache folder :meth:`flush` writes to and the key it writes under (None: not cached).
+        lazy_bricks, lazy_seconds: bricks baked by reads (and :meth:`bake_at`) since creation or load, and the
+            seconds spent making bricks ready.
+
+    The arrays (torch views of the numpy arrays the reads use; R rows, row 0 the coarse row):
+        brick_of: (nbx * nby * nbz,) int64, each brick's row (x-major): r >= 1 baked; 0 no band cell in the brick
+            (row 0: nodes 0, status ``COARSE``); ``NOT_READY`` (lazy) its coarse values or its bake still to come.
+        nodes: (R * 9^3,) float32, the rows' node values, row-major then x, y, z (0 where not evaluated).
+        status: (R * 8^3,) int8 per cell of each row: ``IN_BAND`` (its 8 nodes baked), ``ABOVE`` (a block
+            holding it was dropped with f above the band), ``UNKNOWN`` (dropped below it), ``COARSE`` (row 0).
+        coarse_value: (nbx * nby * nbz,) float32, f at each brick's centre (NaN: not evaluated yet).
+        coarse_grad: (nbx * nby * nbz, 3) float32, central differences of f at the brick centres (NaN: not yet).
+        baked_bricks: (R - 1,) int64, the brick (flat index) of each baked row.
     """
 
     def __init__(self, *, lo, spacing, band, lipschitz, n_bricks, brick_of, nodes, status, coarse_value, coarse_grad,
-                 bounds, error=None, error_bound=0.0, bake_seconds=0.0):
+                 bounds, error=None, error_bound=0.0, bake_seconds=0.0, lazy=False, sdf=None):
         self.lo = torch.as_tensor(lo, dtype=torch.float64).reshape(3)
         self.spacing, self.band, self.lipschitz = float(spacing), float(band), float(lipschitz)
         self.n_bricks = torch.as_tensor(n_bricks, dtype=torch.int64).reshape(3)
-        self.brick_of, self.nodes, self.status = brick_of, nodes, status
-        self.coarse_value, self.coarse_grad = coarse_value, coarse_grad
         self.bounds = tuple(torch.as_tensor(b, dtype=torch.float32).reshape(3) for b in bounds)
         self.error = dict(error or {})
         self.error_bound = float(error_bound)
         self.bake_seconds = float(bake_seconds)
+        self.lazy, self.sdf, self.coarse_to_fine = bool(lazy), sdf, True
+        self.folder, self.key = None, None
+        self.lazy_bricks, self.lazy_seconds = 0, 0.0
+        self._unsaved = False  # bricks baked since the last write to ``folder``
         self.hi = self.lo + self.n_bricks.double() * BRICK * self.spacing
         nb = self.n_bricks.numpy()
-        n_rows = nodes.numel() // NODES**3
-        if (brick_of.numel() != nb.prod() or status.numel() != n_rows * BRICK**3 or coarse_value.numel() != nb.prod()
-                or coarse_grad.shape != (nb.prod(), 3) or int(brick_of.min()) < 0 or int(brick_of.max()) >= n_rows):
+        self._brick_of_np = _own(brick_of, np.int64)
+        self._nodes_np, self._status_np = _own(nodes, np.float32), _own(status, np.int8)
+        self._coarse_value_np = _own(coarse_value, np.float32)
+        self._coarse_grad_np = _own(coarse_grad, np.float32).reshape(-1, 3)
+        self._n_rows = self._nodes_np.size // NODES**3
+        n = int(nb.prod())
+        if (self._brick_of_np.size != n or self._status_np.size != self._n_rows * BRICK**3 or self._n_rows < 1
+                or self._nodes_np.size != self._n_rows * NODES**3 or self._coarse_value_np.size != n
+                or self._coarse_grad_np.shape != (n, 3) or int(self._brick_of_np.min()) < NOT_READY
+                or int(self._brick_of_np.max()) >= self._n_rows):
             raise DataError("a proxy's arrays do not fit together; delete its file (it is rebuilt on the next use)")
-        # numpy views for read(): numpy's per-call cost is a third of torch's on a few points
+        self._brick_at_row = np.full(self._n_rows, -1, dtype=np.int64)  # (capacity,) each row's brick
+        baked = np.flatnonzero(self._brick_of_np > 0)
+        self._brick_at_row[self._brick_of_np[baked]] = baked
+        # numpy for read(): numpy's per-call cost is a third of torch's on a few points
         self._lo_np, self._hi_np = self.lo.numpy(), self.hi.numpy()
+        self._nb = nb
         self._last_cell_np = nb * BRICK - 1
-        self._brick_strides_np = np.array([nb[1] * nb[2], nb[2], 1])
-        self._brick_of_np, self._nodes_np, self._status_np = brick_of.numpy(), nodes.numpy(), status.numpy()
-        self._coarse_value_np, self._coarse_grad_np = coarse_value.numpy(), coarse_grad.numpy()
+        self._nb_dims = tuple(int(n) for n in nb)
+        self._strides_np = np.array([nb[1] * nb[2], nb[2], 1])
+        self._brick_side = BRICK * self.spacing
+        self._first_centre_np = self._lo_np + BRICK / 2 * self.spacing  # (3,) brick (0, 0, 0)'s centre
+        self._half_dims = 2 * nb * BRICK + 1  # the grid of half cells the bake's points lie on
+        self._constants = {np.dtype(t): _ReadConstants(self, np.dtype(t)) for t in (np.float32, np.float64)}
+
+    @classmethod
+    def empty(cls, *, lo, spacing, band, lipschitz, n_bricks, bounds, lazy, sdf) -> ProxySDF:
+        """A proxy of no coarse value and no brick yet (every brick ``NOT_READY``), for :func:`bake_proxy` to fill."""
+        n = int(torch.as_tensor(n_bricks).prod())
+        status = np.full(BRICK**3, COARSE, dtype=np.int8)
+        return cls(lo=lo, spacing=spacing, band=band, lipschitz=lipschitz, n_bricks=n_bricks,
+                   brick_of=np.full(n, NOT_READY, dtype=np.int64), nodes=np.zeros(NODES**3, dtype=np.float32),
+                   status=status, coarse_value=np.full(n, np.nan, dtype=np.float32),
+                   coarse_grad=np.full((n, 3), np.nan, dtype=np.float32), bounds=bounds, lazy=lazy, sdf=sdf)
 
     @property
     def settings(self) -> dict:
-        return {"spacing": self.spacing, "band": self.band, "lipschitz": self.lipschitz, "brick": BRICK, "version": PROXY_VERSION}
+        return {"spacing": self.spacing, "band": self.band, "lipschitz": self.lipschitz, "brick": BRICK,
+                "version": PROXY_VERSION, "lazy": self.lazy}
+
+    @property
+    def brick_of(self) -> torch.Tensor:
+        return torch.from_numpy(self._brick_of_np)
+
+    @property
+    def nodes(self) -> torch.Tensor:
+        return torch.from_numpy(self._nodes_np[:self._n_rows * NODES**3])
+
+    @property
+    def status(self) -> torch.Tensor:
+        return torch.from_numpy(self._status_np[:self._n_rows * BRICK**3])
+
+    @property
+    def coarse_value(self) -> torch.Tensor:
+        return torch.from_numpy(self._coarse_value_np)
+
+    @property
+    def coarse_grad(self) -> torch.Tensor:
+        return torch.from_numpy(self._coarse_grad_np)
+
+    @property
+    def baked_bricks(self) -> torch.Tensor:
+        return torch.from_numpy(self._brick_at_row[1:self._n_rows])
 
     @property
     def n_baked(self) -> int:
         """Bricks baked."""
-        return int(self.nodes.numel() // NODES**3) - 1
+        return self._n_rows - 1
+
+    @property
+    def n_pending(self) -> int:
+        """Bricks whose coarse value says they may hold band cells, not baked yet (a lazy proxy's bricks whose coarse
+        value is not evaluated yet are not counted: the test says they hold none, if the Lipschitz bound holds)."""
+        waiting = np.flatnonzero(self._brick_of_np == NOT_READY)
+        return int(self._may_hold_band(waiting).sum())
 
     @property
     def memory_bytes(self) -> int:
-        """Bytes the proxy holds (nodes, masks, bounds, the brick index and the coarse grid)."""
-        return sum(t.numel() * t.element_size() for t in (self.brick_of, self.nodes, self.status, self.coarse_value,
-                                                          self.coarse_grad))
+        """Bytes the proxy holds (its rows' storage, spare capacity included, the brick index and the coarse grid)."""
+        return sum(a.nbytes for a in (self._brick_of_np, self._nodes_np, self._status_np, self._coarse_value_np,
+                                      self._coarse_grad_np, self._brick_at_row))
 
     def __repr__(self):
-        return (f"ProxySDF(spacing={self.spacing:.3g}, band={self.band:.3g}, bricks={self.n_baked}, "
+        lazy = f", lazy, {self.n_pending} bricks pending" if self.lazy else ""
+        return (f"ProxySDF(spacing={self.spacing:.3g}, band={self.band:.3g}, bricks={self.n_baked}{lazy}, "
                 f"memory={self.memory_bytes / 2**20:.1f} MiB, error_bound={self.error_bound:.3g})")
 
     # -- the SDF protocol ------------------------------------------------------------------------
@@ -172,67 +275,311 @@ class ProxySDF:
 
         Status ``IN_BAND`` (0): the trilinear interpolant and its gradient, within ``error_bound`` of f;
         ``ABOVE`` (1): a lower bound of f that is at least ``band``; ``UNKNOWN`` (-1): a lower bound of f below it
-        (deep inside); the gradient out of band is the coarse one (see the module docstring). numpy on the CPU:
-        a call costs a few tens of microseconds for a few points, a few times less than the same in torch."""
-        p = points.detach().cpu().numpy()
-        values, grads, status = self._read(p)
-        return (torch.from_numpy(values).to(points.device), torch.from_numpy(grads).to(points.device),
-                torch.from_numpy(status).to(points.device))
+        (deep inside); the gradient out of band is the coarse one (see the module docstring). A lazy proxy bakes
+        the bricks the points need first. :meth:`read_numpy` on the CPU."""
+        values, grads, status = self.read_numpy(points.detach().cpu().numpy())
+        out = torch.from_numpy(values), torch.from_numpy(grads), torch.from_numpy(status)
+        return out if points.device.type == "cpu" else tuple(t.to(points.device) for t in out)
 
-    def _read(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`read` on a numpy array (N, 3): values (N,), gradients (N, 3), status (N,) int8."""
-        dtype = p.dtype
-        u = (p - self._lo_np.astype(dtype)) * dtype.type(1 / self.spacing)
-        cell = np.floor(u).astype(np.int64)
-        all_inside = bool(cell.min() >= 0) and bool((cell <= self._last_cell_np).all())  # one test for the usual case
-        if all_inside:
-            inside = np.ones(p.shape[0], dtype=bool)
-        else:
-            inside = ((cell >= 0) & (cell <= self._last_cell_np)).all(axis=-1)
-            np.clip(cell, 0, self._last_cell_np, out=cell)
-        f = u - cell.astype(dtype)
-        if not all_inside:
-            np.clip(f, 0, 1, out=f)
-        brick_flat = (cell >> 3) @ self._brick_strides_np
+    def read_numpy(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Values (N,), gradients (N, 3) and status (N,) int8 at ``p`` (N, 3) float32 or float64 (another dtype is
+        read as float64), in its dtype: :meth:`read` without torch, the cheapest way to ask the proxy (about 20 us a
+        call of 10 points in band, 40 of 500, docs/proxy.md). A lazy proxy bakes the bricks the points need first."""
+        k = self._constants.get(getattr(p, "dtype", None))
+        if k is None:
+            p = np.asarray(p, dtype=np.float64)
+            k = self._constants[p.dtype]
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise InputError(f"points must have shape (N, 3), got {p.shape}")
+        if not p.shape[0]:
+            return np.zeros(0, p.dtype), np.zeros((0, 3), p.dtype), np.zeros(0, np.int8)
+        u = (p - k.lo) * k.inv_h
+        floor = np.floor(u)
+        cell = floor.astype(np.int64)
+        brick = cell >> 3
+        try:  # the usual case, every point in the region (inside None): the flat brick index and the check in one call
+            brick_flat = np.ravel_multi_index(brick.T, self._nb_dims)
+            inside, f = None, u - floor
+        except ValueError:  # some are outside it (or not finite)
+            inside, f = self._clip_to_region(p, u, cell)
+            brick = cell >> 3
+            brick_flat = brick @ self._strides_np
         row = self._brick_of_np[brick_flat]
-        local = cell & (BRICK - 1)
-        status = self._status_np[row * BRICK**3 + local @ _CELL_STRIDES]
-        c = self._nodes_np[(row * NODES**3 + local @ _NODE_STRIDES)[:, None] + _NODE_OFFSETS_NP].astype(dtype, copy=False)
-        c = c.reshape(-1, 2, 2, 2)
-        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
-        cz = c[..., 0] * gz[:, None, None] + c[..., 1] * fz[:, None, None]  # (N, 2, 2) over x, y
-        dz = c[..., 1] - c[..., 0]
-        cy = cz[..., 0] * gy[:, None] + cz[..., 1] * fy[:, None]  # (N, 2) over x
-        dy = cz[..., 1] - cz[..., 0]
-        dzy = dz[..., 0] * gy[:, None] + dz[..., 1] * fy[:, None]
-        values = cy[:, 0] * gx + cy[:, 1] * fx
-        grads = np.stack([cy[:, 1] - cy[:, 0], dy[:, 0] * gx + dy[:, 1] * fx, dzy[:, 0] * gx + dzy[:, 1] * fx], axis=-1)
-        grads *= dtype.type(1 / self.spacing)
-        if all_inside and not status.any():
+        if row.min() < 0:  # a lazy proxy's bricks not ready yet: one test, false wherever they are
+            row = self._rows_made_ready(brick_flat, row, inside)
+        index = (cell & (BRICK - 1)) @ _LOCAL_STRIDES  # (N, 2): the cell in its brick, its first node there
+        status = self._status_np[row * BRICK**3 + index[:, 0]]
+        corners = self._nodes_np[_CORNER_OFFSETS + (row * NODES**3 + index[:, 1])]  # (8, N)
+        values, grads = _trilinear(corners.astype(p.dtype, copy=False), f, k.inv_h)
+        if inside is None and not status.any():
             return values, grads, status
-        out = (status != IN_BAND) | ~inside
-        coarse = self._coarse_value_np[brick_flat].astype(dtype)
+        return self._out_of_band(p, k, brick, brick_flat, status, inside, values, grads)
+
+    _read = read_numpy  # its earlier name, which callers may still use
+
+    def _clip_to_region(self, p: np.ndarray, u: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For points ``p`` (N, 3) some of which lie outside the region (``u`` (N, 3) their places in cells, ``cell``
+        (N, 3) int64 theirs, clipped here in place to the region): whether each is inside (N,) bool, and its place in
+        its (clipped) cell (N, 3) in [0, 1]."""
+        if not np.isfinite(p).all():
+            raise InputError("points must be finite (no NaN or Inf)")
+        inside = ((cell >= 0) & (cell <= self._last_cell_np)).all(axis=-1)
+        np.clip(cell, 0, self._last_cell_np, out=cell)
+        return inside, np.clip(u - cell.astype(p.dtype), 0, 1)
+
+    def _out_of_band(self, p, k, brick, brick_flat, status, inside, values, grads):
+        """:meth:`read_numpy`'s answers where a point is not in band: ``brick`` (N, 3) and ``brick_flat`` (N,) its
+        brick, ``status`` (N,) its cell's, ``inside`` (N,) bool or None (all) whether it is in the region; ``values``
+        (N,) and ``grads`` (N, 3) the interpolant's (kept in band)."""
+        out = status != IN_BAND
+        if inside is not None:
+            out |= ~inside
         # the brick centre's bound f(c) - L |p - c|, valid at every point of the brick, and at least the band in an
         # ABOVE cell (a block holding it was dropped with f above the band)
-        centre = (self._lo_np + ((cell >> 3) * BRICK + BRICK / 2) * self.spacing).astype(dtype)
-        coarse = coarse - dtype.type(self.lipschitz) * np.linalg.norm(p - centre, axis=-1)
-        values = np.where(out, np.where(status == ABOVE, np.maximum(coarse, dtype.type(self.band)), coarse), values)
-        grads = np.where(out[:, None], self._coarse_grad_np[brick_flat].astype(dtype), grads)
-        if not all_inside:  # outside the region: band plus the distance to it, pointing away
-            clamped = np.clip(p, self._lo_np.astype(dtype), self._hi_np.astype(dtype))
-            away = p - clamped
-            gap = np.linalg.norm(away, axis=-1)
-            values = np.where(inside, values, self.band + gap)
-            grads = np.where(inside[:, None], grads, away / np.maximum(gap, np.finfo(dtype).tiny)[:, None])
-            coarse = np.where(inside, coarse, np.inf)
-        status = np.where(out, np.where((status == ABOVE) | (coarse >= self.band), ABOVE, UNKNOWN), IN_BAND).astype(np.int8)
-        return values.astype(dtype, copy=False), grads.astype(dtype, copy=False), status
+        away = p - (brick * self._brick_side + self._first_centre_np)  # float64 (N, 3), from the brick's centre
+        bound = self._coarse_value_np[brick_flat] - k.lipschitz * np.sqrt((away * away).sum(axis=1))
+        np.maximum(bound, k.band, out=bound, where=status == ABOVE)
+        values = np.where(out, bound, values)
+        grads = np.where(out[:, None], self._coarse_grad_np[brick_flat], grads)
+        if inside is not None:  # outside the region: band plus the distance to it, pointing away
+            away = p - np.clip(p, k.lo, k.hi)
+            gap = np.sqrt((away * away).sum(axis=1))
+            values = np.where(inside, values, k.band + gap)
+            grads = np.where(inside[:, None], grads, away / np.maximum(gap, k.tiny)[:, None])
+        # out of band: ABOVE where the value (a lower bound) is at least the band, else UNKNOWN
+        status = np.where(values >= k.band, np.int8(ABOVE), np.int8(UNKNOWN))
+        status *= out
+        return values.astype(p.dtype, copy=False), grads.astype(p.dtype, copy=False), status
+
+    # -- lazy baking -----------------------------------------------------------------------------
+
+    def bake_at(self, points, coarse_to_fine: bool | None = None) -> int:
+        """Make ready the bricks holding ``points`` (N, 3) (those in the region), as a read there would; returns the
+        bricks baked. ``coarse_to_fine``: how (default :attr:`coarse_to_fine`)."""
+        p = as_points(points).detach().cpu().double().numpy()
+        cell = np.floor((p - self._lo_np) / self.spacing).astype(np.int64)
+        inside = ((cell >= 0) & (cell <= self._last_cell_np)).all(axis=-1)
+        flat = (cell[inside] >> 3) @ self._strides_np
+        return self._make_ready(np.unique(flat[self._brick_of_np[flat] == NOT_READY]), coarse_to_fine)
+
+    def bake_all(self) -> int:
+        """Make every brick ready (a lazy proxy then is an eagerly baked one); returns the bricks baked."""
+        waiting = np.flatnonzero(self._brick_of_np == NOT_READY)
+        return sum(self._make_ready(batch) for batch in np.array_split(waiting, -(-waiting.size // BAKE_BATCH) or 1))
+
+    def _rows_made_ready(self, brick_flat: np.ndarray, row: np.ndarray, inside: np.ndarray | None) -> np.ndarray:
+        """The rows (N,) of the bricks ``brick_flat`` (N,) after making ready those not yet (``row`` (N,) < 0) that hold
+        points in the region (``inside`` (N,) bool, or None: all); a point outside gets row 0 (its answer is the
+        region's, not its brick's)."""
+        waiting = row < 0
+        if inside is not None:
+            waiting &= inside
+        if waiting.any():
+            self._make_ready(np.unique(brick_flat[waiting]))
+        row = self._brick_of_np[brick_flat]
+        return row if inside is None else np.maximum(row, 0)
+
+    def _make_ready(self, bricks: np.ndarray, coarse_to_fine: bool | None = None, advance=None) -> int:
+        """Make the ``NOT_READY`` bricks ``bricks`` (K,) (flat indices) ready: their coarse values and gradients, then
+        the bake of those that may hold band cells (all of them in one batch); the others get row 0. Returns the
+        bricks baked. ``advance``: called with the points of each SDF call (a progress bar)."""
+        if not bricks.size:
+            return 0
+        if self.sdf is None:
+            raise InputError("this lazily baked proxy was loaded without its SDF, so it cannot bake the bricks a read "
+                             "needs: load it with load_proxy(folder, key, sdf=...) or cached_proxy(sdf, ...)")
+        started = time.perf_counter()
+        self._complete_coarse(bricks, advance)
+        near = self._may_hold_band(bricks)
+        self._brick_of_np[bricks[~near]] = 0
+        baked = self._bake_bricks(bricks[near], self.coarse_to_fine if coarse_to_fine is None else coarse_to_fine,
+                                  advance)
+        self.lazy_bricks += baked
+        self.lazy_seconds += time.perf_counter() - started
+        return baked
+
+    def _may_hold_band(self, bricks: np.ndarray) -> np.ndarray:
+        """(K,) bool: whether the bricks ``bricks`` (K,) may hold band cells, by the test of their centre's f (False
+        where it is not evaluated yet)."""
+        radius = _HALF_DIAGONAL * BRICK * self.spacing
+        with np.errstate(invalid="ignore"):  # NaN (not evaluated) compares False
+            return np.abs(self._coarse_value_np[bricks].astype(np.float64)) <= self.lipschitz * radius + self.band
+
+    def _complete_coarse(self, bricks: np.ndarray, advance=None) -> None:
+        """Compute the coarse gradients of the bricks ``bricks`` (K,) that lack one, first evaluating (one batch) the
+        centres they need that are not yet: theirs and their 6 neighbours'."""
+        need = bricks[np.isnan(self._coarse_grad_np[bricks, 0])]
+        if not need.size:
+            return
+        nb = self._nb
+        ijk = self._unravel(need)
+        around = (ijk[:, None] + _AROUND).reshape(-1, 3)
+        around = around[((around >= 0) & (around < nb)).all(axis=-1)]
+        flat = np.unique(around @ self._strides_np)
+        flat = flat[np.isnan(self._coarse_value_np[flat])]
+        if flat.size:
+            self._coarse_value_np[flat] = self._evaluate(16 * self._unravel(flat) + 8, advance)  # brick centres
+        self._coarse_grad_np[need] = self._coarse_gradient(ijk)
+
+    def _coarse_gradient(self, ijk: np.ndarray) -> np.ndarray:
+        """(K, 3) float32 central differences of the brick-centre values at the bricks ``ijk`` (K, 3) (one-sided at the
+        region's faces, 0 along an axis of one brick; all NaN where a neighbour is not evaluated)."""
+        nb = self._nb
+        out = np.empty(ijk.shape, dtype=np.float64)
+        for axis in range(3):  # a loop over the 3 axes, not over bricks
+            before, after = ijk.copy(), ijk.copy()
+            before[:, axis] = np.maximum(ijk[:, axis] - 1, 0)
+            after[:, axis] = np.minimum(ijk[:, axis] + 1, nb[axis] - 1)
+            steps = after[:, axis] - before[:, axis]
+            rise = (self._coarse_value_np[after @ self._strides_np].astype(np.float64)
+                    - self._coarse_value_np[before @ self._strides_np])
+            out[:, axis] = np.where(steps > 0, rise / (np.maximum(steps, 1) * BRICK * self.spacing), 0.0)
+        out[np.isnan(out).any(axis=-1)] = np.nan  # all of it unknown, so that one column tells
+        return out.astype(np.float32)
+
+    def _bake_bricks(self, bricks: np.ndarray, coarse_to_fine: bool, advance=None) -> int:
+        """Bake the bricks ``bricks`` (K,) (flat) into new rows, all at once: split each into 8 blocks, drop those whose
+        centre fails the band test (their cells ABOVE or UNKNOWN by its sign), split the others, down to cells, then
+        evaluate the kept cells' nodes. ``coarse_to_fine``: each level asks the SDF at the centres it tests (4 calls);
+        else every node and cell centre of the bricks is asked in one call first. Returns K."""
+        if not bricks.size:
+            return 0
+        rows = self._new_rows(bricks.size)
+        origins = self._unravel(bricks) * BRICK  # (K, 3) the bricks' first cells
+        evaluate = self._evaluate if coarse_to_fine else self._evaluated_at_once(origins, advance)
+        blocks, block_rows, size = origins, rows, BRICK
+        while size > 1:
+            size //= 2
+            children = (blocks[:, None] + _CORNERS * size).reshape(-1, 3)
+            child_rows = np.repeat(block_rows, 8)
+            f = evaluate(2 * children + size, advance)  # their centres, in half cells
+            near = np.abs(f) <= self.lipschitz * (_HALF_DIAGONAL * size * self.spacing) + self.band
+            self._mark_dropped(children[~near], child_rows[~near], size, f[~near] > 0)
+            blocks, block_rows = children[near], child_rows[near]
+        index = (blocks & (BRICK - 1)) @ _LOCAL_STRIDES  # the kept cells' (C, 2) indices in their bricks
+        values = evaluate(2 * (blocks[:, None] + _CORNERS).reshape(-1, 3), advance).reshape(-1, 8)  # (C, 8) corners
+        self._nodes_np[(block_rows * NODES**3 + index[:, 1])[:, None] + _CORNER_OFFSETS.T] = values
+        self._status_np[block_rows * BRICK**3 + index[:, 0]] = IN_BAND
+        self._brick_of_np[bricks] = rows
+        self._brick_at_row[rows] = bricks
+        self._unsaved = True
+        return bricks.size
+
+    def _mark_dropped(self, blocks: np.ndarray, rows: np.ndarray, size: int, above: np.ndarray) -> None:
+        """Mark every cell of the dropped blocks ``blocks`` (D, 3) (first cells) of ``size`` cells a side, in rows
+        ``rows`` (D,), ``ABOVE`` where ``above`` (D,) (f at the centre was positive: f exceeds the band on all of
+        the block), else ``UNKNOWN``."""
+        offsets = np.indices((size,) * 3).reshape(3, -1).T  # (size^3, 3)
+        cells = (blocks[:, None] + offsets) & (BRICK - 1)  # (D, size^3, 3) in their bricks
+        index = rows[:, None] * BRICK**3 + cells @ _CELL_STRIDES
+        self._status_np[index] = np.where(above, ABOVE, UNKNOWN).astype(np.int8)[:, None]
+
+    def _new_rows(self, k: int) -> np.ndarray:
+        """``k`` new rows' numbers (k,); the storage doubles when full, so that a lazy proxy does not copy all its rows
+        at every bake."""
+        start, end = self._n_rows, self._n_rows + k
+        capacity = self._brick_at_row.size
+        if end > capacity:
+            capacity = max(end, 2 * capacity)
+            self._nodes_np = _grown(self._nodes_np, capacity * NODES**3, 0)
+            self._status_np = _grown(self._status_np, capacity * BRICK**3, UNKNOWN)
+            self._brick_at_row = _grown(self._brick_at_row, capacity, -1)
+        self._n_rows = end
+        return np.arange(start, end)
+
+    def _unravel(self, flat: np.ndarray) -> np.ndarray:
+        """Bricks (K, 3) of the flat brick indices ``flat`` (K,)."""
+        nb = self._nb
+        return np.stack([flat // (nb[1] * nb[2]), (flat // nb[2]) % nb[1], flat % nb[2]], axis=-1)
+
+    def _half_keys(self, half: np.ndarray) -> np.ndarray:
+        """Flat keys (M,) of points ``half`` (M, 3) in half cells from ``lo``."""
+        return (half[:, 0] * self._half_dims[1] + half[:, 1]) * self._half_dims[2] + half[:, 2]
+
+    def _evaluate(self, half: np.ndarray, advance=None) -> np.ndarray:
+        """f (M,) float64 at the points ``half`` (M, 3) int64 in half cells from ``lo`` (a node at even coordinates,
+        a cell centre at odd ones), each distinct point asked once."""
+        keys, inverse = np.unique(self._half_keys(half), return_inverse=True)
+        return self._evaluate_keys(keys, advance)[inverse]
+
+    def _evaluate_keys(self, keys: np.ndarray, advance=None) -> np.ndarray:
+        """f (M,) float64 at the points of flat half-cell keys ``keys`` (M,): float32 points, ``CHUNK`` a call, under
+        ``torch.no_grad()``. Every bake asks its points this way, so that a lazy and an eager bake ask the same."""
+        dy, dz = self._half_dims[1], self._half_dims[2]
+        half = np.stack([keys // (dy * dz), (keys // dz) % dy, keys % dz], axis=-1)
+        points = torch.from_numpy(self._lo_np + (half / 2) * self.spacing).float()
+        out = np.empty(keys.size, dtype=np.float64)
+        with torch.no_grad():
+            for start in range(0, keys.size, CHUNK):  # a loop over chunks, not points
+                chunk = points[start:start + CHUNK]
+                out[start:start + CHUNK] = torch.as_tensor(self.sdf(chunk)).detach().cpu().reshape(-1).double().numpy()
+                if advance is not None:
+                    advance(chunk.shape[0])
+        if not np.isfinite(out).all():
+            raise InputError("the SDF returned NaN or Inf inside its own bounds; check its evaluation")
+        return out
+
+    def _evaluated_at_once(self, origins: np.ndarray, advance=None):
+        """Ask the SDF at every node and cell centre of the bricks whose first cells are ``origins`` (K, 3) in one
+        batch; returns an ``evaluate(half, advance)`` that reads them back (as :meth:`_evaluate` would give them)."""
+        keys = np.unique(self._half_keys((2 * origins[:, None] + _BRICK_HALF_POINTS).reshape(-1, 3)))
+        values = self._evaluate_keys(keys, advance)
+
+        def evaluate(half: np.ndarray, advance=None) -> np.ndarray:
+            return values[np.searchsorted(keys, self._half_keys(half))]
+
+        return evaluate
+
+    # -- creation --------------------------------------------------------------------------------
+
+    def _coarse_pass(self, everywhere: bool, advance=None) -> None:
+        """Evaluate f at the brick centres, at all of them (``everywhere``) or at those of the blocks of bricks that
+        a coarse-to-fine band test keeps; compute the gradients whose neighbours are all evaluated; give row 0 to the
+        bricks that hold no band cell and have their gradient. The rest stay ``NOT_READY``."""
+        nb = self._nb
+        bricks = np.indices(nb).reshape(3, -1).T if everywhere else self._bricks_near_band(advance)
+        flat = bricks @ self._strides_np
+        self._coarse_value_np[flat] = self._evaluate(16 * bricks + 8, advance)  # brick centres, in half cells
+        self._coarse_grad_np[flat] = self._coarse_gradient(bricks)
+        ready = ~np.isnan(self._coarse_grad_np[flat, 0]) & ~self._may_hold_band(flat)
+        self._brick_of_np[flat[ready]] = 0
+
+    def _bricks_near_band(self, advance=None) -> np.ndarray:
+        """The bricks (K, 3) of the blocks that a coarse-to-fine band test keeps: from one block of 2^k bricks a side
+        over the region, f at each block's centre (the block clipped to the region); a block with |f| > L r + band
+        (r its half-diagonal) holds no band cell and is dropped, the others are split into 8, down to bricks."""
+        nb = self._nb
+        size = 1 << (int(nb.max()) - 1).bit_length()  # the smallest power of 2 with at least the region's bricks
+        blocks = np.zeros((1, 3), dtype=np.int64)
+        while size > 1:
+            ends = np.minimum(blocks + size, nb)
+            f = self._evaluate(8 * (blocks + ends), advance)  # the clipped blocks' centres, in half cells
+            radius = 0.5 * np.linalg.norm(ends - blocks, axis=-1) * BRICK * self.spacing
+            blocks = blocks[np.abs(f) <= self.lipschitz * radius + self.band]
+            size //= 2
+            children = (blocks[:, None] + _CORNERS * size).reshape(-1, 3)
+            blocks = children[(children < nb).all(axis=-1)]
+        return blocks
 
     # -- on disk ---------------------------------------------------------------------------------
 
+    def attach_cache(self, folder, key: str) -> None:
+        """Make ``folder`` (under ``key``) the cache :meth:`flush` writes to, also at the process's exit."""
+        self.folder, self.key = Path(folder), key
+        _FLUSHED_AT_EXIT.add(self)
+
+    def flush(self, force: bool = False) -> bool:
+        """Write the proxy as baked so far to its cache folder (atomically, with its ``SHA256SUMS``) if bricks were baked
+        since the last write (or ``force``); returns whether it wrote. Every proxy with a cache folder is flushed at
+        the process's exit too."""
+        if self.folder is None or not (self._unsaved or force):
+            return False
+        save_proxy(self, self.folder, self.key or "")
+        self._unsaved = False
+        return True
+
     def state(self) -> tuple[dict, dict]:
-        """(tensors, metadata strings) that :meth:`from_state` reads back."""
+        """(tensors, metadata strings) that :meth:`from_state` reads back: the rows baked so far."""
         tensors = {"lo": self.lo, "n_bricks": self.n_bricks, "brick_of": self.brick_of, "nodes": self.nodes,
                    "status": self.status, "coarse_value": self.coarse_value,
                    "coarse_grad": self.coarse_grad, "bounds_lo": self.bounds[0], "bounds_hi": self.bounds[1]}
@@ -241,24 +588,74 @@ class ProxySDF:
         return tensors, meta
 
     @classmethod
-    def from_state(cls, tensors: dict, meta: dict) -> ProxySDF:
+    def from_state(cls, tensors: dict, meta: dict, sdf=None) -> ProxySDF:
+        """The proxy of :meth:`state`'s output; ``sdf``: the SDF a lazy one goes on baking from."""
         try:
             settings = json.loads(meta["settings"])
+            if settings.get("version") != PROXY_VERSION:
+                raise DataError(f"a proxy file of version {settings.get('version')} (this zoo reads {PROXY_VERSION}); "
+                                "delete it (it is rebuilt on the next use)")
             return cls(lo=tensors["lo"], spacing=settings["spacing"], band=settings["band"], lipschitz=settings["lipschitz"],
                        n_bricks=tensors["n_bricks"], brick_of=tensors["brick_of"], nodes=tensors["nodes"],
                        status=tensors["status"], coarse_value=tensors["coarse_value"],
                        coarse_grad=tensors["coarse_grad"], bounds=(tensors["bounds_lo"], tensors["bounds_hi"]),
                        error=json.loads(meta["error"]), error_bound=float(meta["error_bound"]),
-                       bake_seconds=float(meta.get("bake_seconds", 0.0)))
+                       bake_seconds=float(meta.get("bake_seconds", 0.0)), lazy=bool(settings.get("lazy", False)), sdf=sdf)
         except (KeyError, ValueError, TypeError) as exc:
             raise DataError(f"a proxy file lacks or garbles {exc}; delete it (it is rebuilt on the next use)") from exc
+
+
+def _own(array, dtype) -> np.ndarray:
+    """``array`` (a tensor or an array) as a flat, writable, C-contiguous numpy array of ``dtype`` (copied only if
+    needed)."""
+    a = array.detach().cpu().numpy() if torch.is_tensor(array) else np.asarray(array)
+    a = np.ascontiguousarray(a, dtype=dtype).reshape(-1)
+    return a if a.flags.writeable else a.copy()
+
+
+def _grown(array: np.ndarray, size: int, fill) -> np.ndarray:
+    """``array`` (n,) copied into a new array (size,) whose rest is ``fill``."""
+    out = np.full(size, fill, dtype=array.dtype)
+    out[:array.size] = array
+    return out
+
+
+def _trilinear(c: np.ndarray, f: np.ndarray, inv_h) -> tuple[np.ndarray, np.ndarray]:
+    """The trilinear interpolant (N,) and its gradient (N, 3) of the corner values ``c`` (8, N) (corner 4i + 2j + k at
+    (i, j, k)) at ``f`` (N, 3), the points' places in their cells (of side 1 / ``inv_h``).
+
+    Lerps along z, then y, then x, each time the values and the derivatives so far together, into one buffer: a dozen
+    numpy calls whatever N, each a contiguous row per corner (on a few points a call costs its overhead, about half a
+    microsecond, not its arithmetic; on hundreds, the rows keep the loops long)."""
+    n = c.shape[1]
+    buf = np.empty((3, 2, 4, n), dtype=c.dtype)
+    z = buf[0]  # (d/dz, value) of the 4 edges along z, (x, y) x-major
+    np.subtract(c[1::2], c[0::2], out=z[0])
+    np.multiply(z[0], f[:, 2], out=z[1])
+    z[1] += c[0::2]
+    zy = z.reshape(4, 2, n)  # (d/dz at x0, at x1, value at x0, at x1) by y
+    y = buf[1]
+    np.subtract(zy[:, 1], zy[:, 0], out=y[0])
+    np.multiply(y[0], f[:, 1], out=y[1])
+    y[1] += zy[:, 0]
+    yx = y.reshape(4, 2, n)  # (d2/dydz, d/dy, d/dz, value) by x
+    x = buf[2]
+    np.subtract(yx[:, 1], yx[:, 0], out=x[0])  # their d/dx: x[0, 3] the gradient's x
+    np.multiply(x[0], f[:, 0], out=x[1])
+    x[1] += yx[:, 0]  # (unused, d/dy, d/dz, value)
+    grads = np.empty((n, 3), dtype=c.dtype)
+    grads[:, 0] = x[0, 3]
+    grads[:, 1:] = x[1, 1:3].T
+    grads *= inv_h
+    return x[1, 3], grads
 
 
 # -- baking ---------------------------------------------------------------------------------------
 
 
 def bake_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: float | None = None,
-               lipschitz: float | None = None, progress: bool | None = None, seed: int = 0) -> ProxySDF:
+               lipschitz: float | None = None, progress: bool | None = None, seed: int = 0, lazy: bool = False,
+               error_bricks: int = ERROR_BRICKS) -> ProxySDF:
     """Bake the narrow-band proxy of ``sdf`` (any SDF) for contacts at ``margin`` (see the module docstring).
 
     Args:
@@ -268,10 +665,11 @@ def bake_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: fl
         band: m, the half-width of the band baked (default :func:`default_band`); larger than ``margin``.
         lipschitz: the bound of |grad f| the tests assume (default :func:`zoo.coherence.motion_lipschitz`).
         progress: show a bar (default: :func:`zoo.progress.shown`).
-        seed: of the held-out points the error is measured on.
+        seed: of the held-out points the error is measured on (and of a lazy proxy's sample of bricks).
+        lazy: bake only the coarse grid near the surface and ``error_bricks`` random bricks that may hold band cells
+            (the error is measured on those); reads bake the other bricks when they first need them. Else bake
+            every brick now.
     """
-    import time
-
     from .coherence import motion_lipschitz
     from .progress import progress_bar, wanted
 
@@ -287,107 +685,40 @@ def bake_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: fl
     pad = band + h
     lo = bounds[0] - pad
     n_bricks = torch.ceil((bounds[1] + pad - lo) / (BRICK * h)).long().clamp_min(1)
-    nb = [int(n) for n in n_bricks]
+    proxy = ProxySDF.empty(lo=lo, spacing=h, band=band, lipschitz=lip, n_bricks=n_bricks, bounds=bounds, lazy=lazy,
+                           sdf=sdf)
     with progress_bar(wanted(progress)) as bar:
-        task = bar.add_task(f"baking the proxy of {getattr(sdf, 'name', type(sdf).__name__)}", total=math.prod(nb))
+        task = bar.add_task(f"baking the proxy of {getattr(sdf, 'name', type(sdf).__name__)} (SDF points)", total=None)
 
-        def evaluate(cells: torch.Tensor, size: float) -> torch.Tensor:
-            """f (N,) float64 at the centres of the blocks of ``size`` cells whose first cells are ``cells`` (N, 3)."""
-            return _evaluate(sdf, lo + (cells.double() + size / 2) * h, bar, task)
+        def advance(points: int) -> None:
+            bar.advance(task, points)
 
-        grid = torch.stack(torch.meshgrid(*[torch.arange(n) for n in nb], indexing="ij"), dim=-1).reshape(-1, 3)
-        f0 = evaluate(grid * BRICK, BRICK)
-        if not bool(torch.isfinite(f0).all()):
-            raise InputError("the SDF returned NaN or Inf inside its own bounds; check its evaluation")
-        radius = math.sqrt(3) / 2 * BRICK * h
-        coarse_value = f0.float()
-        coarse_grad = torch.stack(torch.gradient(f0.reshape(nb), spacing=BRICK * h), dim=-1).reshape(-1, 3).float()
-        keep = f0.abs() <= lip * radius + band
-        bricks = grid[keep]
-        n_rows = bricks.shape[0]
-        brick_of = torch.full((grid.shape[0],), n_rows, dtype=torch.int64)  # row n_rows: every brick not baked
-        brick_of[keep] = torch.arange(n_rows)
-        strides = torch.tensor([nb[1] * nb[2], nb[2], 1])
-        status = torch.full(((n_rows + 1) * BRICK**3,), UNKNOWN, dtype=torch.int8)
-        status[n_rows * BRICK**3:] = COARSE
-        origins, size = bricks * BRICK, BRICK
-        while size > 1:  # split the kept blocks into 8, test their centres; drop the far ones
-            size //= 2
-            bar.update(task, total=bar.tasks[task].total + 8 * origins.shape[0])
-            children = (origins.unsqueeze(1) + _CORNERS * size).reshape(-1, 3)
-            f = evaluate(children, size)
-            r = math.sqrt(3) / 2 * size * h
-            near = f.abs() <= lip * r + band
-            _set_status(status, brick_of, strides, children[~near], size, f[~near] > 0)
-            origins = children[near]
-        cells = origins  # (K, 3) the kept cells
-        node_keys, inverse = torch.unique(_node_key(cells.unsqueeze(1) + _CORNERS, nb), return_inverse=True)  # (K, 8)
-        bar.update(task, total=bar.tasks[task].total + node_keys.shape[0])
-        node_values = _evaluate_nodes(sdf, node_keys, nb, lo, h, bar, task)
-        row = brick_of[((cells >> 3) * strides).sum(-1)]  # (K,)
-        local = cells & (BRICK - 1)
-        nodes = torch.zeros((n_rows + 1) * NODES**3, dtype=torch.float32)
-        at = (row * NODES**3 + (local * torch.from_numpy(_NODE_STRIDES)).sum(-1)).unsqueeze(-1) + _NODE_OFFSETS
-        nodes[at.reshape(-1)] = node_values[inverse.reshape(-1)].float()
-        status[row * BRICK**3 + (local * torch.from_numpy(_CELL_STRIDES)).sum(-1)] = IN_BAND
-    proxy = ProxySDF(lo=lo, spacing=h, band=band, lipschitz=lip, n_bricks=n_bricks, brick_of=brick_of, nodes=nodes,
-                     status=status, coarse_value=coarse_value, coarse_grad=coarse_grad, bounds=bounds)
+        proxy._coarse_pass(everywhere=not lazy, advance=advance)
+        waiting = np.flatnonzero(proxy._brick_of_np == NOT_READY)
+        if lazy:  # the sample the error is measured on
+            near = waiting[proxy._may_hold_band(waiting)]
+            pick = np.random.default_rng(seed).choice(near.size, size=min(error_bricks, near.size), replace=False)
+            proxy._make_ready(np.sort(near[pick]), advance=advance)
+        else:
+            for batch in np.array_split(waiting, -(-waiting.size // BAKE_BATCH) or 1):  # batches of bricks
+                proxy._make_ready(batch, advance=advance)
+    proxy.lazy_bricks, proxy.lazy_seconds = 0, 0.0  # only what reads bake later
     proxy.error = measure_error(proxy, sdf, seed=seed)
     proxy.error_bound = ERROR_SAFETY * proxy.error["max"]
     proxy.bake_seconds = time.perf_counter() - started
     return proxy
 
 
-def _node_key(nodes: torch.Tensor, nb: list[int]) -> torch.Tensor:
-    """Flat keys (...,) of grid nodes (..., 3) (the region has ``nb * BRICK + 1`` nodes per axis)."""
-    ny, nz = nb[1] * BRICK + 1, nb[2] * BRICK + 1
-    return (nodes[..., 0] * ny + nodes[..., 1]) * nz + nodes[..., 2]
-
-
-def _evaluate_nodes(sdf, keys: torch.Tensor, nb: list[int], lo: torch.Tensor, h: float, bar, task) -> torch.Tensor:
-    """f (N,) float64 at the grid nodes with flat keys ``keys`` (N,)."""
-    ny, nz = nb[1] * BRICK + 1, nb[2] * BRICK + 1
-    ijk = torch.stack([keys // (ny * nz), (keys // nz) % ny, keys % nz], dim=-1)
-    out = _evaluate(sdf, lo + ijk.double() * h, bar, task)
-    if not bool(torch.isfinite(out).all()):
-        raise InputError("the SDF returned NaN or Inf near its surface; check its evaluation")
-    return out
-
-
-def _evaluate(sdf, points: torch.Tensor, bar, task) -> torch.Tensor:
-    """f (N,) float64 at ``points`` (N, 3), asked in float32 ``CHUNK`` points a call, advancing the bar's task."""
-    out = torch.empty(points.shape[0], dtype=torch.float64)
-    with torch.no_grad():
-        for start in range(0, points.shape[0], CHUNK):  # a loop over chunks, not points
-            chunk = points[start:start + CHUNK]
-            out[start:start + CHUNK] = torch.as_tensor(sdf(chunk.float())).reshape(-1).double()
-            bar.advance(task, chunk.shape[0])
-    return out
-
-
-def _set_status(status: torch.Tensor, brick_of: torch.Tensor, strides: torch.Tensor, blocks: torch.Tensor, size: int,
-                above: torch.Tensor) -> None:
-    """Mark every cell of the dropped blocks (D, 3) of ``size`` cells a side ``ABOVE`` where ``above`` (D,) bool (f at
-    the block's centre was positive: f exceeds the band on all of it), else ``UNKNOWN``."""
-    if not blocks.shape[0]:
-        return
-    offsets = torch.stack(torch.meshgrid(*[torch.arange(size)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
-    cells = (blocks.unsqueeze(1) + offsets).reshape(-1, 3)  # (D * size^3, 3)
-    row = brick_of[((cells >> 3) * strides).sum(-1)]
-    index = row * BRICK**3 + ((cells & (BRICK - 1)) * torch.from_numpy(_CELL_STRIDES)).sum(-1)
-    status[index] = torch.where(above, ABOVE, UNKNOWN).to(torch.int8).repeat_interleave(size**3)
-
-
 def measure_error(proxy: ProxySDF, sdf, samples: int = ERROR_SAMPLES, seed: int = 0) -> dict:
     """|proxy - f| at ``samples`` held-out points (uniform in random baked cells, none a node) where the proxy is in
     band: {"median", "p99", "max", "samples"} in the SDF's units (zeros when nothing is baked)."""
-    cells = (proxy.status[:-BRICK**3] == IN_BAND).nonzero().squeeze(-1)
+    cells = (proxy.status[BRICK**3:] == IN_BAND).nonzero().squeeze(-1)  # in the baked rows, 1 on
     if not cells.numel():
         return {"median": 0.0, "p99": 0.0, "max": 0.0, "samples": 0}
     g = torch.Generator().manual_seed(seed)
     pick = cells[torch.randint(cells.numel(), (samples,), generator=g)]
-    brick, local = pick // BRICK**3, pick % BRICK**3
-    brick_index = (proxy.brick_of < proxy.n_baked).nonzero().squeeze(-1)[brick]  # rows are in flat brick order
+    row, local = pick // BRICK**3, pick % BRICK**3
+    brick_index = proxy.baked_bricks[row]
     nb = proxy.n_bricks
     b3 = torch.stack([brick_index // (nb[1] * nb[2]), (brick_index // nb[2]) % nb[1], brick_index % nb[2]], dim=-1)
     l3 = torch.stack([local // (BRICK * BRICK), (local // BRICK) % BRICK, local % BRICK], dim=-1)
@@ -427,7 +758,7 @@ def proxy_key(sdf, settings: dict) -> str | None:
            "similarity": [float(sim.scale), torch.as_tensor(sim.rotation).double().reshape(-1).tolist(),
                           torch.as_tensor(sim.translation).double().reshape(-1).tolist()],
            "settings": dict(settings, version=PROXY_VERSION, brick=BRICK, error_samples=ERROR_SAMPLES,
-                            error_safety=ERROR_SAFETY)}
+                            error_safety=ERROR_SAFETY, error_bricks=ERROR_BRICKS)}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
 
 
@@ -450,9 +781,10 @@ def save_proxy(proxy: ProxySDF, directory, key: str = "") -> Path:
     return directory
 
 
-def load_proxy(directory, key: str | None = None) -> ProxySDF:
+def load_proxy(directory, key: str | None = None, sdf=None) -> ProxySDF:
     """The proxy saved in ``directory``, verified against its ``SHA256SUMS`` (:class:`ChecksumError` if it differs,
-    :class:`DataError` if incomplete or unreadable) and, if ``key`` is given, against the key it was saved under."""
+    :class:`DataError` if incomplete or unreadable) and, if ``key`` is given, against the key it was saved under.
+    ``sdf``: the SDF a lazily baked one goes on baking from (without it, a read that needs a new brick raises)."""
     from safetensors import safe_open
 
     from .files import verify_directory
@@ -468,17 +800,20 @@ def load_proxy(directory, key: str | None = None) -> ProxySDF:
     if key is not None and meta.get("key") != key:
         raise DataError(f"{directory / PROXY_FILE} was saved for another SDF or settings (key {meta.get('key')!r}, "
                         f"expected {key!r}); delete it")
-    return ProxySDF.from_state(tensors, meta)
+    return ProxySDF.from_state(tensors, meta, sdf=sdf)
 
 
 def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: float | None = None,
                  lipschitz: float | None = None, cache: bool | str | Path = True, progress: bool | None = None,
-                 rebake: bool = False) -> ProxySDF:
-    """The proxy of ``sdf`` (as :func:`bake_proxy`'s arguments), from the cache when baked before.
+                 rebake: bool = False, lazy: bool = True) -> ProxySDF:
+    """The proxy of ``sdf`` (as :func:`bake_proxy`'s arguments), from the cache when made before.
 
     ``cache``: True uses ``zoo.hub.zoo_cache_dir() / "proxies"``, a path another folder, False none. Only a model's
     shapes are cached (:func:`proxy_key`); others are baked every time. A cached proxy that fails its checksum or
-    cannot be read is refused with a warning and baked again. ``rebake``: bake it anew and replace the cached one."""
+    cannot be read is refused with a warning and baked again. ``rebake``: bake it anew and replace the cached one.
+    ``lazy`` (the default): bricks are baked when first read, and what was baked is written back to the cache by
+    :meth:`ProxySDF.flush` and at the process's exit; the cached proxy goes on baking lazily when loaded again.
+    ``lazy=False``: every brick is baked now (minutes for a NeuralSDF at 0.1 mm, docs/proxy.md)."""
     from .coherence import motion_lipschitz
     from .hub import zoo_cache_dir
 
@@ -488,17 +823,35 @@ def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: 
     h = default_spacing(bounds, margin) if spacing is None else positive_float(spacing, "spacing")
     band = default_band(margin, h) if band is None else positive_float(band, "band")
     lip = motion_lipschitz(sdf) if lipschitz is None else positive_float(lipschitz, "lipschitz")
-    key = proxy_key(sdf, {"spacing": h, "band": band, "lipschitz": lip}) if cache is not False else None
+    key = proxy_key(sdf, {"spacing": h, "band": band, "lipschitz": lip, "lazy": bool(lazy)}) if cache is not False else None
     folder = None
     if key is not None:
         root = zoo_cache_dir() / "proxies" if cache is True else Path(cache)
         folder = root / f"{getattr(sdf, 'name', 'sdf')}-{key[:24]}"
         if (folder / PROXY_FILE).exists() and not rebake:
             try:
-                return load_proxy(folder, key)
+                proxy = load_proxy(folder, key, sdf=sdf)
             except (ChecksumError, DataError) as exc:
                 warnings.warn(f"refused the cached proxy in {folder} ({exc}); baking it again", stacklevel=2)
-    proxy = bake_proxy(sdf, margin, h, band, lip, progress=progress)
+            else:
+                proxy.attach_cache(folder, key)
+                return proxy
+    proxy = bake_proxy(sdf, margin, h, band, lip, progress=progress, lazy=lazy)
     if folder is not None:
-        save_proxy(proxy, folder, key)
+        proxy.attach_cache(folder, key)
+        proxy.flush(force=True)
     return proxy
+
+
+# proxies with a cache folder, written back at exit (weakly held: a proxy no longer used is not kept alive for it)
+_FLUSHED_AT_EXIT: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _flush_at_exit() -> None:
+    """Write every cached proxy's new bricks to its folder (:meth:`ProxySDF.flush`), so that a run keeps what it baked."""
+    for proxy in list(_FLUSHED_AT_EXIT):
+        try:
+            proxy.flush()
+        except Exception as exc:  # noqa: BLE001 - at exit, a failed write is reported, not raised over the run's end
+            warnings.warn(f"could not write the proxy's new bricks to {proxy.folder}: {exc}", stacklevel=1)
