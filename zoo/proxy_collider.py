@@ -78,7 +78,7 @@ class ProxyCollider:
                  polish: bool = True, reuse_distance: float | None = None, deferred: bool = False):
         from .coherence import REUSE_FRACTION
 
-        if not callable(getattr(proxy, "read", None)) or not hasattr(proxy, "error_bound"):
+        if not callable(getattr(proxy, "read_numpy", None)) or not hasattr(proxy, "error_bound"):
             raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
         self.sdf, self.proxy, self.method = sdf, proxy, method
         self.iters, self.polish = iterations(method, iters), bool(polish)
@@ -194,7 +194,7 @@ class ProxyCollider:
 
     def _read(self, points: np.ndarray, stats: CoherenceStats):
         stats.cell_queries += int(points.shape[0])
-        return self.proxy._read(points)
+        return self.proxy.read_numpy(points)
 
     # -- the search on the proxy ---------------------------------------------------------------------------------
 
