@@ -17,7 +17,8 @@ import zoo
 from zoo.coherence import _plane_descent
 from zoo.geometry import barycentric_grid
 from zoo.proxy import bake_proxy
-from zoo.proxy_collider import CLUSTER, ProxyCollider, _clusters, _plane_descent as plane_descent_np
+from zoo.proxy_collider import CLUSTER, ProxyCollider, _clusters
+from zoo.proxy_collider import _plane_descent as plane_descent_np
 
 
 def brute_minima(sdf, tri: torch.Tensor, resolution: int = 40) -> torch.Tensor:

@@ -40,14 +40,16 @@ def test_mug_released_above_the_real_rack_stays_on_the_peg(monkeypatch):
 @pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
 def test_coherent_simulation_follows_the_from_scratch_ones(monkeypatch):
     """Issue 25's check: the mug released 2 mm above where it hangs on the real rack
-    (scenes/sim-mug-hanging.toml), 0.2 s three ways: amortized with coherence (the default), without, and FW-10.
-    The trajectories end within 2 mm of each other, and coherence solves far fewer faces than it keeps.
+    (scenes/sim-mug-hanging.toml), 0.2 s four ways: the default (on the proxy), amortized with coherence on the
+    NeuralSDF itself, without coherence, and FW-10. The trajectories end within 2 mm of each other, and coherence
+    solves far fewer faces than it keeps.
     The speed ratios are measured by ``zoo bench --sim`` (docs/sim-bench.md), not here."""
     import zoo.sim
 
     monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
     ends = {}
-    for label, overrides in {"coherent": {}, "scratch": {"coherence": False}, "fw": {"method": "fw", "coherence": False}}.items():
+    ways = {"coherent": {"proxy": False}, "proxy": {}, "scratch": {"coherence": False}, "fw": {"method": "fw", "coherence": False}}
+    for label, overrides in ways.items():
         sim = zoo.sim.load_scene(ROOT / "scenes" / "sim-mug-hanging.toml", **overrides)
         sim.run(0.2)
         assert not sim.warnings and np.isfinite(sim.pose("mug")).all(), (label, sim.warnings)
@@ -57,8 +59,9 @@ def test_coherent_simulation_follows_the_from_scratch_ones(monkeypatch):
             # a hanging mug keeps most answers: 2.5 kept per solved face at b612771 (3.2 while separated contacts
             # also damped its rest, before 0bb3ce7); the speed this buys is zoo bench --sim's check_mug_hanging
             assert stats.reused > 2 * (stats.warm + stats.cold), stats
-    for label in ("scratch", "fw"):
+    for label in ("scratch", "fw", "proxy"):
         assert np.linalg.norm(ends[label] - ends["coherent"]) < 2e-3, (label, ends)
+    assert np.linalg.norm(ends["proxy"] - ends["scratch"]) < 2e-3, ends
 
 
 @pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
@@ -73,7 +76,7 @@ def test_sim_bench_runs_each_method_in_its_own_process_with_the_threads_asked(tm
 
     monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
     before = torch.get_num_threads()
-    path = run_sim_benchmark(tmp_path, seconds=0.004, scenarios=["bottle-holder"], methods=["amortized+coherence"],
+    path = run_sim_benchmark(tmp_path, seconds=0.004, scenarios=["bottle-holder"], methods=["amortized+proxy"],
                              references=False, progress=lambda *_: None, threads=3, panda_scenes=())
     report = json.loads(path.read_text())
     (row,) = report["rows"]

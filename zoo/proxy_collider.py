@@ -41,10 +41,9 @@ from .bounds import triangle_reach
 from .coherence import POLISH_GAP_FRACTION, CoherenceStats, moved_along_normal
 from .collision import Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
-from .geometry import invert_pose
 from .methods import iterations
 from .proxy import IN_BAND
-from .validation import as_pose, non_negative_float
+from .validation import as_pose_array, non_negative_float
 
 CLUSTER = 32  # faces per cluster of the first cull
 # projected-gradient steps on the proxy, at most, per face and call: a face new to the search takes several; one
@@ -119,9 +118,10 @@ class ProxyCollider:
         margin = self.margin if margin is None else non_negative_float(margin, "margin")
         stats = CoherenceStats(steps=1)
         t0 = time.perf_counter()
-        sdf_pose_t = as_pose(sdf_pose, torch.float64, "sdf_pose").cpu()
-        relative = (invert_pose(sdf_pose_t) @ as_pose(mesh_pose, torch.float64, "mesh_pose").cpu()).numpy()
-        sdf_pose = sdf_pose_t.numpy()
+        sdf_pose = as_pose_array(sdf_pose, "sdf_pose")
+        inverse = np.eye(4)  # rigid: a transpose, not a general inverse
+        inverse[:3, :3], inverse[:3, 3] = sdf_pose[:3, :3].T, -sdf_pose[:3, :3].T @ sdf_pose[:3, 3]
+        relative = inverse @ as_pose_array(mesh_pose, "mesh_pose")
         rotation, shift = relative[:3, :3], relative[:3, 3]
         search = margin + self.proxy.error_bound
         faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import numbers
 
+import numpy as np
 import torch
 
 from .errors import DeviceError, InputError
@@ -241,6 +242,21 @@ def as_pose(pose, dtype: torch.dtype = torch.float32, name: str = "pose") -> tor
     check_finite(t, name)
     r = t[:3, :3].double()
     if not torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), atol=1e-4) or float(torch.det(r)) <= 0:
+        raise InputError(f"{name}'s upper-left 3x3 block must be a rotation (orthonormal, det +1)")
+    return t
+
+
+def as_pose_array(pose, name: str = "pose") -> np.ndarray:
+    """:func:`as_pose` in numpy float64 (4, 4), for the per-step paths where torch's per-call cost shows."""
+    if pose is None:
+        return np.eye(4)
+    t = np.asarray(pose.detach().cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+    if t.shape != (4, 4):
+        raise InputError(f"{name} must be a 4x4 homogeneous transform, got shape {tuple(t.shape)}")
+    if not np.isfinite(t).all():
+        raise InputError(f"{name} has NaN or Inf entries")
+    r = t[:3, :3]
+    if np.abs(r @ r.T - np.eye(3)).max() > 1e-4 or np.linalg.det(r) <= 0:
         raise InputError(f"{name}'s upper-left 3x3 block must be a rotation (orthonormal, det +1)")
     return t
 

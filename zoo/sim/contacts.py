@@ -357,13 +357,14 @@ def _area_gain(flat: np.ndarray, polygon: np.ndarray, normal: np.ndarray) -> np.
     The polygon's corners are put in counter-clockwise order about ``normal``; a point outside adds
     the triangles it makes with the edges it sees (those it lies outside of), a point inside adds nothing.
     """
-    t1 = tangent_frames(normal[None])[0, 3:6]
-    t2 = np.cross(normal, t1)
+    axes = tangent_frames(normal[None])[0, 3:9].reshape(2, 3)  # t1, t2: (t1, t2, normal) is right-handed
     centre = polygon.mean(axis=0)
-    angle = np.arctan2((polygon - centre) @ t2, (polygon - centre) @ t1)
-    a = polygon[np.argsort(angle)]
-    b = np.roll(a, -1, axis=0)
-    signed = np.cross((b - a)[None], flat[:, None] - a[None]) @ normal  # (P, K): > 0 inside each edge
+    corners = (polygon - centre) @ axes.T  # (K, 2) in the plane
+    points = (flat - centre) @ axes.T  # (P, 2)
+    a = corners[np.argsort(np.arctan2(corners[:, 1], corners[:, 0]))]
+    edge = np.roll(a, -1, axis=0) - a  # (K, 2)
+    to_point = points[:, None] - a[None]  # (P, K, 2)
+    signed = edge[None, :, 0] * to_point[..., 1] - edge[None, :, 1] * to_point[..., 0]  # (P, K): > 0 inside each edge
     return np.clip(-signed, 0.0, None).sum(axis=1) / 2
 
 

@@ -18,7 +18,7 @@ integrator = "implicitfast"     # or "euler", "implicit", "rk4" (default implici
 cone = "pyramidal"              # MuJoCo's friction cone, or "elliptic"; with impratio = 10 for a grasp
 impratio = 1.0
 coherence = true                # carry bounds and answers from step to step (zoo.CoherentCollider)
-# proxy = false                 # cull and search on a baked narrow-band proxy of each model shape (zoo.proxy)
+proxy = true                    # cull and search on a lazily baked narrow-band proxy of each model shape (zoo.proxy)
 camera = "side"                 # the video's camera: one of the MJCF's, or { lookat = [x, y, z], distance = 0.3,
                                 # azimuth = 135, elevation = -25 }; default: aimed at the SDF bodies
 # qpos = { joint = 0.5 }        # initial positions of the MJCF's hinge and slide joints (default: the MJCF's qpos0)
@@ -90,7 +90,7 @@ def simulation_settings(spec: dict, **overrides) -> dict:
         "solimp": sim_spec.get("solimp"), "integrator": sim_spec.get("integrator"),
         "cone": sim_spec.get("cone"), "impratio": sim_spec.get("impratio"),
         "reduce": sim_spec.get("reduce", True), "refine": sim_spec.get("refine", True),
-        "coherence": sim_spec.get("coherence", True), "proxy": sim_spec.get("proxy", False),
+        "coherence": sim_spec.get("coherence", True), "proxy": sim_spec.get("proxy", True),
     }
     settings.update({k: v for k, v in overrides.items() if v is not None and k not in SCENE_ONLY})
     return settings

@@ -81,9 +81,10 @@ class Simulation:
         reduce: reduce contacts to a manifold per patch (False: every contact, for comparison).
         refine: split mesh triangles larger than a quarter of the SDF once, at build (False: the mesh as
             given).
-        proxy: with ``coherence``, the model shapes' mesh pairs cull and search on a baked narrow-band proxy and the
-            shape answers only the faces that survive (:func:`zoo.sim.attach`'s ``proxy``; a dict names the bodies and
-            may give their proxies).
+        proxy: with ``coherence`` (the default), the model shapes' mesh pairs cull and search on a narrow-band proxy,
+            baked lazily where the meshes come and cached, and the shape answers only the contacts kept
+            (:func:`zoo.sim.attach`'s ``proxy``; a dict names the bodies and may give their proxies). False queries the
+            shape itself for everything; ``method="amortized", coherence=False`` is the full from-scratch reference.
         mjcf: an MJCF file (path) to start from (a robot, a gripper, a table): its bodies, joints, actuators, mocap
             and options; :meth:`add_body` adds to it, and an SDF given for one of its bodies is attached to it.
 
@@ -106,7 +107,7 @@ class Simulation:
     def __init__(self, dt: float | None = None, gravity=None, method: str = "amortized", margin: float = 1e-3,
                  friction: float | None = None, solref=None, solimp=None,
                  integrator: str | None = None, cone: str | None = None, impratio: float | None = None,
-                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool | dict = False):
+                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool | dict = True):
         if dt is not None and not (dt > 0 and math.isfinite(dt)):
             raise InputError(f"dt must be positive, got {dt}")
         if integrator is not None and integrator.lower() not in INTEGRATORS:
@@ -286,7 +287,7 @@ class Simulation:
     def _new_warnings(self) -> list[str]:
         import mujoco
 
-        counts = np.array([w.number for w in self.data.warning])
+        counts = self.data.warning.number.copy()  # (mjNWARNING,) one array read, not one per warning kind
         fresh = np.nonzero(counts > self._warnings_seen)[0]
         self._warnings_seen = counts
         return [f"mujoco: {mujoco.mjtWarning(int(i)).name}" for i in fresh]

@@ -201,7 +201,7 @@ class StepStats:
 def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
            reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
            surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
-           proxy: bool | dict = False) -> World:
+           proxy: bool | dict = True) -> World:
     """sdfzoo's contacts for the SDF bodies of a user's ``mujoco.MjModel`` (see the module docstring).
 
     Args:
@@ -220,9 +220,10 @@ def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e
         include_geoms: names of geoms MuJoCo does not collide (contype = conaffinity = 0) that the SDF bodies
             collide with all the same (a flat mesh MuJoCo cannot take as a collision mesh).
         tolerance: m; how far a tessellated primitive's triangles may lie inside its true surface.
-        proxy: with ``coherence``, each model shape's mesh pairs cull and search on its narrow-band proxy (baked once at
-            ``margin``, or read from the cache: :func:`zoo.proxy.cached_proxy`), and the shape answers only the faces
-            that survive (``zoo.CoherentCollider``'s ``proxy``); other SDFs, and planes and spheres, are unchanged.
+        proxy: with ``coherence`` (default True), each model shape's mesh pairs cull and search on its narrow-band
+            proxy (:func:`zoo.proxy.cached_proxy` at ``margin``: baked lazily where the meshes come, cached, and what was
+            baked written back at exit), and the shape answers only the contacts kept (:mod:`zoo.proxy_collider`);
+            other SDFs, and planes and spheres, are unchanged. False: every query is the shape's.
             A dict {SDF body name: a ``zoo.proxy.ProxySDF``, or True} gives those bodies theirs (any SDF), and no other.
     """
     return World(model, bodies, method=method, margin=margin, coherence=coherence, reduce=reduce, refine=refine,
@@ -245,7 +246,7 @@ class World:
     def __init__(self, model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
                  reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
                  surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
-                 proxy: bool | dict = False):
+                 proxy: bool | dict = True):
         import mujoco
 
         if not isinstance(model, mujoco.MjModel):
