@@ -18,8 +18,9 @@ proxy at 10 and 500 points: near the surface (all in band) and uniform in the mu
 float32 and float64; the bricks those points need are baked before the timing.
 
 ``--sim``: each scenario of benches/sim_scenarios.py named (its scene, control and check) run three ways in one process,
-stepping in turn so that the machine's load falls on all alike: the full path (amortized, no coherence), the default
-(amortized with coherence) and the default on the proxy (``proxy=True``: from the cache, baked first if absent). Per way:
+stepping in turn so that the machine's load falls on all alike: the full path (amortized, no coherence), the coherent
+collider on the NeuralSDF itself (``proxy=False``, the default before the proxy) and the default, on the proxy
+(``proxy=True``: from the cache, baked lazily where absent). Per way:
 collision and step time per step (median, mean), contacts, deepest penetration, the end pose's distance from the full
 path's (and along the bolt, for bolt-nut), the scenario's check, and the collider's counts (NeuralSDF points).
 
@@ -39,8 +40,9 @@ import torch
 from investigations.report import write_report
 
 SHAPES = [("mugs", "hoi4d_mug_0001", 1e-3), ("bolts", "factory_bolt_m16", 1e-4), ("gears", "industreal_gear_large", 1e-4)]
-WAYS = {"full": {"method": "amortized", "coherence": False}, "default": {"method": "amortized", "coherence": True},
-        "proxy": {"method": "amortized", "coherence": True, "proxy": True}}
+WAYS = {"full": {"method": "amortized", "coherence": False},
+        "coherent": {"method": "amortized", "coherence": True, "proxy": False},
+        "proxy": {"method": "amortized", "coherence": True, "proxy": True}}  # proxy: the default
 
 
 def per_call_us(fn, points: torch.Tensor, repeats: int) -> float:
