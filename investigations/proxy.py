@@ -45,7 +45,7 @@ WAYS = {"full": {"method": "amortized", "coherence": False},
         "proxy": {"method": "amortized", "coherence": True, "proxy": True}}  # proxy: the default
 
 
-def per_call_us(fn, points: torch.Tensor, repeats: int) -> float:
+def per_call_us(fn, points, repeats: int) -> float:
     """Median microseconds a point of ``fn(points)`` over ``repeats`` calls."""
     fn(points)
     times = []
@@ -175,13 +175,7 @@ def read_costs(model: str = "mugs", shape: str = "hoi4d_mug_0001", margin: float
         for n in (10, 500):
             for dtype in (np.float32, np.float64):
                 p = np.ascontiguousarray(points[:n], dtype=dtype)
-                read(p)
-                times = []
-                for _ in range(repeats):
-                    started = time.perf_counter()
-                    read(p)
-                    times.append(time.perf_counter() - started)
-                out[kind][f"{n}_{np.dtype(dtype).name}_us"] = 1e6 * float(np.median(times))
+                out[kind][f"{n}_{np.dtype(dtype).name}_us"] = per_call_us(read, p, repeats) * n
     return out
 
 
