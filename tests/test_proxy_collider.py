@@ -74,6 +74,25 @@ def test_sphere_over_a_plane_against_brute_force():
     assert counted > 6 and collider.stats.exact_faces == counted
 
 
+def test_small_motions_carry_the_last_search_and_stay_at_the_minima():
+    """A sphere settling onto a plane by 0.02 mm a step (under ``reuse_distance``, 0.2 mm): the calls between full
+    searches carry the last one's answers, their depths moved along their normals, and stay within 2e-5 of the
+    brute-force minima with no face within the margin missed; a step of 1 mm searches again."""
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3)
+    mesh = plane_mesh(max_edge=0.01)
+    collider = ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw")
+    searched = []
+    for step in range(14):
+        sdf_pose = pose(None, (0.0, 0.0, 0.0505 - 2e-5 * step))
+        check_against_brute_force(sphere, collider, mesh, sdf_pose, None, 1e-3, 2e-5)
+        if not collider.last_stats.reused:
+            searched.append(step)
+    assert searched[:2] == [0, 11] or searched[:2] == [0, 10], searched  # 0.2 mm in steps of 0.02 mm, then again
+    check_against_brute_force(sphere, collider, mesh, pose(None, (0.001, 0.0, 0.0495)), None, 1e-3, 2e-5)
+    assert collider.last_stats.reused == 0
+
+
 @pytest.mark.slow
 def test_the_mug_on_the_rack_against_brute_force():
     """The mugs NeuralSDF (its proxy on a 2 mm grid, for a quick bake) on the rack's faces within 1 cm of it, resting

@@ -25,6 +25,12 @@ is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF
    depth moved to first order along its normal (a persistent contact). Every contact's point, depth and normal
    are the SDF's.
 
+Between full searches. A full search also keeps its answers on the faces within ``L * reuse_distance`` above the
+search margin (a motion of ``reuse_distance`` cannot bring another face within it); while no vertex of the mesh has
+moved more than ``reuse_distance`` relative to the SDF since (a bound from the change of the relative pose and the
+mesh's radius), a call carries those answers, their values moved to first order along their normals, with no read
+at all (``stats.reused``): a persistent contact manifold, as the SDF's own answers are kept below.
+
 Why clusters and not a carried bound per vertex (what :class:`zoo.CoherentCollider` does on the SDF itself): on
 the proxy a read costs what the bookkeeping of a carried bound would, so one read per cluster and per face near it
 is the cheaper proof, and it needs no state but the last answers (the search's warm starts and the kept contacts).
@@ -33,6 +39,7 @@ is the cheaper proof, and it needs no state but the last answers (the search's w
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -92,6 +99,8 @@ class ProxyCollider:
         self._f = faces.cpu().numpy()  # (F, 3)
         corners = self._v[self._f]  # (F, 3, 3)
         self._centroid = corners.mean(axis=1)  # (F, 3)
+        self._middle = (self._v.min(axis=0) + self._v.max(axis=0)) / 2 if len(self._v) else np.zeros(3)
+        self._extent = float(np.linalg.norm(self._v - self._middle, axis=1).max()) if len(self._v) else 0.0
         self._reach, self._ball = (t.numpy() for t in triangle_reach(torch.from_numpy(corners)))  # (F, 3), (F,)
         self._clusters, self._cluster_centre, self._cluster_radius = _clusters(corners, self._centroid)
         lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64).cpu()).reshape(3) for b in proxy.bounds)
@@ -108,6 +117,7 @@ class ProxyCollider:
         self._exact_grad = np.zeros((n, 3))  # (F, 3)
         self._exact_at = np.zeros((n, 3, 3))  # (F, 3, 3) the face, SDF frame, when the SDF answered it
         self._pending = None
+        self._held = None  # the last full search's answers within its net (_Held), carried while the motion is small
         self.last_candidates = torch.zeros(0, dtype=torch.int64)
 
     # -- a step --------------------------------------------------------------------------------------------------
@@ -124,9 +134,19 @@ class ProxyCollider:
         relative = inverse @ as_pose_array(mesh_pose, "mesh_pose")
         rotation, shift = relative[:3, :3], relative[:3, 3]
         search = margin + self.proxy.error_bound
-        faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
-        t1 = time.perf_counter()
-        bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
+        held = self._held
+        if held is not None and held.search == search and self._moved_at_most(held.relative, relative) <= self.reuse_distance:
+            t1 = time.perf_counter()
+            faces, tri, bary, values, grads, status = held.carried(self._v[self._f[held.faces]] @ rotation.T + shift)
+            stats.reused = len(held.faces)
+        else:
+            faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
+            t1 = time.perf_counter()
+            bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
+            # the faces a motion of reuse_distance cannot bring within the search margin are left out of what is held
+            net = values <= search + self.proxy.lipschitz * self.reuse_distance
+            self._held = _Held(relative, search, faces[net], tri[net], bary[net], values[net], grads[net], status[net])
+            faces, tri, bary, values, grads, status = (a[net] for a in (faces, tri, bary, values, grads, status))
         hit = values <= search
         faces, tri, bary, values, grads, status = faces[hit], tri[hit], bary[hit], values[hit], grads[hit], status[hit]
         points = np.einsum("sv,svc->sc", bary, tri)
@@ -153,6 +173,12 @@ class ProxyCollider:
         self.last_stats.add(stats)
         self.stats.add(stats)
         return contacts
+
+    def _moved_at_most(self, then: np.ndarray, now: np.ndarray) -> float:
+        """A bound (m) of how far any mesh vertex moved relative to the SDF between the relative poses ``then`` and ``now``
+        (4x4 SDF-from-mesh): the rotation's change times the mesh's radius about its centre, plus the centre's move."""
+        turn = now[:3, :3] - then[:3, :3]
+        return float(np.linalg.norm(turn) * self._extent + np.linalg.norm(turn @ self._middle + now[:3, 3] - then[:3, 3]))
 
     # -- culling -------------------------------------------------------------------------------------------------
 
@@ -375,6 +401,29 @@ class ProxyCollider:
         return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
                         triangles=torch.from_numpy(np.ascontiguousarray(faces, dtype=np.int64)), bary=as_t(bary),
                         n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+
+
+@dataclass
+class _Held:
+    """A full search's answers on the faces within its net: what later calls carry while the mesh moves less than
+    ``reuse_distance`` relative to the SDF (a persistent contact manifold), their values moved to first order along
+    their normals. ``relative``: the 4x4 SDF-from-mesh pose then; ``search``: the search margin then; ``faces`` (H,),
+    ``tri`` (H, 3, 3) SDF frame then, ``bary`` (H, 3), proxy ``values`` (H,), ``grads`` (H, 3) and ``status`` (H,)."""
+
+    relative: np.ndarray
+    search: float
+    faces: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    values: np.ndarray
+    grads: np.ndarray
+    status: np.ndarray
+
+    def carried(self, tri: np.ndarray):
+        """(faces, tri, bary, values, grads, status) with the faces now at ``tri`` (H, 3, 3)."""
+        shift = np.einsum("hv,hvc->hc", self.bary, tri - self.tri)
+        values = self.values + (shift * _unit(self.grads)).sum(axis=1)
+        return self.faces, tri, self.bary, values, self.grads, self.status
 
 
 # -- geometry in numpy (a step's few faces: numpy's per-call cost is a fraction of torch's) ---------------------------
