@@ -289,13 +289,8 @@ class ProxyCollider:
         """One line search along the steepest descent of the proxy inside each triangle (W, 3, 3) from ``bary`` (W, 3)
         (f0 (W,) and g (W, 3) there), to where it leaves the triangle: -> bary, values, gradients, status at the lower
         of its end and the parabola's minimiser (the parabola through f0, the slope and the end's value)."""
-        direction = _plane_descent(tri, bary, g)
-        leaving = direction < 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
-        reach = np.where(np.isfinite(reach), reach, 0.0)
-        end = np.clip(bary + reach[:, None] * direction, 0, None)
-        end /= end.sum(axis=1, keepdims=True)
+        direction, reach = _descent_segment(tri, bary, g)
+        end = _on_simplex(bary + reach[:, None] * direction)
         p0, p1 = np.einsum("wv,wvc->wc", bary, tri), np.einsum("wv,wvc->wc", end, tri)
         f1, g1, s1 = self._read(p1, stats)
         slope = ((p1 - p0) * g).sum(axis=1)  # < 0 along a descent
@@ -303,9 +298,7 @@ class ProxyCollider:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(curvature > 0, np.clip(-slope / (2 * curvature), 0, 1), 1.0)
         t = np.where(np.isfinite(t), t, 0.0)
-        mid = bary + (t * reach)[:, None] * direction
-        mid = np.clip(mid, 0, None)
-        mid /= mid.sum(axis=1, keepdims=True)
+        mid = _on_simplex(bary + (t * reach)[:, None] * direction)
         fm, gm, sm = self._read(np.einsum("wv,wvc->wc", mid, tri), stats)
         end_lower = f1 < fm
         pick = end_lower[:, None]
@@ -378,14 +371,9 @@ class ProxyCollider:
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
         SDF's gradient there), as far as the lowest of ``POLISH_SAMPLES`` points along it on the proxy (one read), and
         the SDF's value and gradient at that point (one query): -> bary (P, 3), values (P,), gradients (P, 3) there."""
-        direction = _plane_descent(tri, bary, g)
-        leaving = direction < 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
-        reach = np.where(np.isfinite(reach), reach, 0.0)
+        direction, reach = _descent_segment(tri, bary, g)
         t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
-        along = np.clip(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None], 0, None)
-        along /= along.sum(axis=-1, keepdims=True)  # (P, S, 3)
+        along = _on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
         values = self._read(np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
         end = along[np.arange(len(tri)), values.argmin(axis=1)]
         with torch.no_grad():
@@ -421,9 +409,8 @@ class _Held:
 
     def carried(self, tri: np.ndarray):
         """(faces, tri, bary, values, grads, status) with the faces now at ``tri`` (H, 3, 3)."""
-        shift = np.einsum("hv,hvc->hc", self.bary, tri - self.tri)
-        values = self.values + (shift * _unit(self.grads)).sum(axis=1)
-        return self.faces, tri, self.bary, values, self.grads, self.status
+        values = moved_along_normal(*(torch.from_numpy(a) for a in (self.values, _unit(self.grads), tri, self.tri, self.bary)))
+        return self.faces, tri, self.bary, values.numpy(), self.grads, self.status
 
 
 # -- geometry in numpy (a step's few faces: numpy's per-call cost is a fraction of torch's) ---------------------------
@@ -485,6 +472,23 @@ def _plane_descent(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> np.ndarr
     on_edge[rows, k], on_edge[rows, j] = along, -along
     count = blocked.sum(axis=1)[:, None]
     return np.where(count == 1, on_edge, np.where(count > 1, 0.0, direction))
+
+
+def _descent_segment(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The steepest descent of a field with gradients ``g`` (W, 3) inside the triangles (W, 3, 3) from ``bary`` (W, 3):
+    its barycentric direction (W, 3) (:func:`_plane_descent`) and how far along it the triangle reaches (W,) (0 where
+    it goes nowhere)."""
+    direction = _plane_descent(tri, bary, g)
+    leaving = direction < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
+    return direction, np.where(np.isfinite(reach), reach, 0.0)
+
+
+def _on_simplex(bary: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (..., 3) a step left a rounding error off the triangle: clipped at 0, summing to 1."""
+    out = np.clip(bary, 0, None)
+    return out / out.sum(axis=-1, keepdims=True)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
