@@ -1,8 +1,8 @@
-"""zoo.proxy_collider: the proxy path's numpy passes held against slow, obviously correct references.
+"""zoo.proxy_collider: the proxy path's passes (compiled, and numpy) held against slow, obviously correct references.
 
 Each face's answer against a brute-force minimum of the SDF over a dense barycentric grid of the face (every face
 whose minimum lies within the margin is reported, at a depth no further from that minimum than the search's
-tolerance); the clusters against their faces; the numpy descent direction against coherence's torch one; empty
+tolerance); the compiled passes against the numpy ones; the clusters against their faces; the numpy descent direction against coherence's torch one; empty
 inputs give empty contacts.
 """
 
@@ -17,7 +17,7 @@ import zoo
 from zoo.coherence import _plane_descent
 from zoo.geometry import barycentric_grid
 from zoo.proxy import bake_proxy
-from zoo.proxy_collider import CLUSTER, ProxyCollider, _clusters
+from zoo.proxy_collider import CLUSTER, KERNELS, ProxyCollider, _clusters
 from zoo.proxy_collider import _plane_descent as plane_descent_np
 
 
@@ -62,11 +62,12 @@ def check_against_brute_force(sdf, collider, mesh, sdf_pose, mesh_pose, margin: 
     return len(contacts)
 
 
-def test_sphere_over_a_plane_against_brute_force():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_sphere_over_a_plane_against_brute_force(kernel):
     sphere = zoo.Sphere(0.05)
     proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3)
     mesh = plane_mesh(max_edge=0.01)
-    collider = ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw")
+    collider = ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw", kernel=kernel)
     counted = 0
     for step in range(6):
         sdf_pose = pose(rotation((0, 0, 1), 0.3 * step), (0.002 * step, -0.001 * step, 0.0498 - 2e-4 * step))
@@ -74,14 +75,15 @@ def test_sphere_over_a_plane_against_brute_force():
     assert counted > 6 and collider.stats.exact_faces == counted
 
 
-def test_small_motions_carry_the_last_search_and_stay_at_the_minima():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_small_motions_carry_the_last_search_and_stay_at_the_minima(kernel):
     """A sphere settling onto a plane by 0.02 mm a step (under ``reuse_distance``, 0.2 mm): the calls between full
     searches carry the last one's answers, their depths moved along their normals, and stay within 2e-5 of the
     brute-force minima with no face within the margin missed; a step of 1 mm searches again."""
     sphere = zoo.Sphere(0.05)
     proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3)
     mesh = plane_mesh(max_edge=0.01)
-    collider = ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw")
+    collider = ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw", kernel=kernel)
     searched = []
     for step in range(14):
         sdf_pose = pose(None, (0.0, 0.0, 0.0505 - 2e-5 * step))
@@ -116,13 +118,39 @@ def test_the_mug_on_the_rack_against_brute_force():
     assert counted > 10
 
 
+def test_compiled_passes_answer_as_the_numpy_passes():
+    """The compiled per-face passes (zoo.proxy_kernel) against the numpy ones, on a lazily baked proxy (so that the
+    compiled reads meet bricks not ready and the call is made again): a sphere sliding, turning and sinking over a plane
+    of long thin faces; the same proxy contacts (faces, depths, points) and the same counts at every step."""
+    sphere = zoo.Sphere(0.05)
+    vertices, faces = plane_mesh(max_edge=0.004)
+    vertices = np.asarray(vertices) * np.array([1.0, 0.3, 1.0])  # long thin faces
+    mesh = (vertices, faces)
+    colliders = {kernel: ProxyCollider(sphere, mesh, bake_proxy(sphere, margin=1e-3, spacing=1e-3, lazy=True), margin=1e-3,
+                                       method="fw", deferred=True, reuse_distance=0.0, kernel=kernel) for kernel in KERNELS}
+    compared = 0
+    for step in range(8):
+        sdf_pose = pose(rotation((0.3, 0.2, 1), 0.03 * step), (4e-4 * step, -2e-4 * step, 0.0502 - 2e-4 * step))
+        contacts = {kernel: collider(sdf_pose, None) for kernel, collider in colliders.items()}
+        a, b = contacts["numpy"], contacts["numba"]
+        assert a.triangles.tolist() == b.triangles.tolist()
+        torch.testing.assert_close(a.depths.double(), b.depths.double(), rtol=0, atol=1e-9)
+        torch.testing.assert_close(a.points.double(), b.points.double(), rtol=0, atol=1e-9)
+        sa, sb = colliders["numpy"].last_stats, colliders["numba"].last_stats
+        for count in ("faces_near", "faces_skipped", "candidates", "warm", "cold", "screened", "cell_queries"):
+            assert getattr(sa, count) == getattr(sb, count), count
+        compared += len(a)
+    assert compared > 50 and colliders["numba"].stats.warm > 0 and colliders["numba"].proxy.lazy_bricks > 0
+
+
 def test_empty_inputs_give_empty_contacts():
     sphere = zoo.Sphere(0.05)
     proxy = bake_proxy(sphere, margin=1e-3, spacing=2e-3)
     empty = ProxyCollider(sphere, (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)), proxy, margin=1e-3, method="fw")
     assert len(empty(None, None)) == 0
-    far = ProxyCollider(sphere, plane_mesh(), proxy, margin=1e-3, method="fw", deferred=True)
-    assert len(far(pose(None, (0.0, 0.0, 1.0)), None)) == 0
+    for kernel in KERNELS:
+        far = ProxyCollider(sphere, plane_mesh(), proxy, margin=1e-3, method="fw", deferred=True, kernel=kernel)
+        assert len(far(pose(None, (0.0, 0.0, 1.0)), None)) == 0
     assert len(far.exact_contacts(torch.zeros(0, dtype=torch.int64))) == 0
 
 

@@ -317,6 +317,21 @@ class ProxySDF:
 
     _read = read_numpy  # its earlier name, which callers may still use
 
+    def grid(self) -> tuple:
+        """What a compiled read needs (:func:`zoo.proxy_kernel.read`), the arrays as they are now (baking may replace
+        them): (lo (3,), hi (3,), 1 / spacing, band, lipschitz, brick_of, nodes, status, coarse_value, coarse_grad
+        (B, 3), n_bricks (3,) int64, a brick's side, brick (0, 0, 0)'s centre (3,)); the arrays as in the class doc."""
+        return (self._lo_np, self._hi_np, 1 / self.spacing, self.band, self.lipschitz, self._brick_of_np, self._nodes_np,
+                self._status_np, self._coarse_value_np, self._coarse_grad_np, self._nb, self._brick_side,
+                self._first_centre_np)
+
+    def make_ready(self, bricks) -> int:
+        """Make the bricks ``bricks`` (K,) (flat indices) ready where they are not yet (a lazy proxy), as a read landing
+        in them would; returns the bricks baked. A compiled read (:func:`zoo.proxy_kernel.read`) reports the bricks
+        it met not ready, for its caller to make ready here."""
+        bricks = np.unique(np.asarray(bricks, dtype=np.int64))
+        return self._make_ready(bricks[self._brick_of_np[bricks] == NOT_READY])
+
     def _clip_to_region(self, p: np.ndarray, u: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For points ``p`` (N, 3) some of which lie outside the region (``u`` (N, 3) their places in cells, ``cell``
         (N, 3) int64 theirs, clipped here in place to the region): whether each is inside (N,) bool, and its place in

@@ -57,6 +57,7 @@ CLUSTER = 32  # faces per cluster of the first cull
 # searched at the last step goes on from its answer there, so one step a call carries its descent along
 SEARCH_STEPS, WARM_SEARCH_STEPS = 3, 1
 CONVERGED_GAP = 0.02  # a face whose Frank-Wolfe gap on the proxy is below this fraction of the margin stops searching
+KERNELS = ("numba", "numpy")  # how the per-face passes run: compiled (zoo.proxy_kernel), or numpy passes
 POLISH_SAMPLES = 8  # points on the proxy along the SDF's steepest descent that choose a polishing step's length
 BOUNDARY = 1e-9  # barycentric coordinates this small put a point on its triangle's boundary
 # The search's starts (barycentric): the vertices, the edges' midpoints and three inner points, so that a minimum in
@@ -78,10 +79,12 @@ class ProxyCollider:
         reuse_distance: m; a face that moved less than this (relative to the SDF) since the SDF answered it keeps
             that answer, its depth moved along its normal; default ``REUSE_FRACTION`` of the margin; 0 answers anew.
         deferred: a call returns the proxy's contacts, and :meth:`exact_contacts` the SDF's for the rows kept.
+        kernel: how the per-face passes run: ``"numba"`` compiled (:mod:`zoo.proxy_kernel`, the default) or
+            ``"numpy"`` (the reference the compiled passes are tested against; the same answers, slower).
     """
 
     def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *, iters: int | None = None,
-                 polish: bool = True, reuse_distance: float | None = None, deferred: bool = False):
+                 polish: bool = True, reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba"):
         from .coherence import REUSE_FRACTION
 
         if not callable(getattr(proxy, "read_numpy", None)) or not hasattr(proxy, "error_bound"):
@@ -92,6 +95,9 @@ class ProxyCollider:
         self.reuse_distance = (REUSE_FRACTION * self.margin if reuse_distance is None
                                else non_negative_float(reuse_distance, "reuse_distance"))
         self.deferred = bool(deferred)
+        if kernel not in KERNELS:
+            raise InputError(f"kernel= takes one of {', '.join(KERNELS)}, got {kernel!r}")
+        self.kernel = kernel
         self.reported_method = f"proxy+{method}"
         vertices, faces = mesh_tensors(mesh)
         self.vertices, self.faces = vertices, faces  # torch, for the fallback and the caller
@@ -118,6 +124,7 @@ class ProxyCollider:
         self._exact_at = np.zeros((n, 3, 3))  # (F, 3, 3) the face, SDF frame, when the SDF answered it
         self._pending = None
         self._held = None  # the last full search's answers within its net (_Held), carried while the motion is small
+        self._scratch = None  # the compiled passes' buffers (_KernelScratch), made at their first call
         self.last_candidates = torch.zeros(0, dtype=torch.int64)
 
     # -- a step --------------------------------------------------------------------------------------------------
@@ -140,13 +147,14 @@ class ProxyCollider:
             faces, tri, bary, values, grads, status = held.carried(self._v[self._f[held.faces]] @ rotation.T + shift)
             stats.reused = len(held.faces)
         else:
-            faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
-            t1 = time.perf_counter()
-            bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
             # the faces a motion of reuse_distance cannot bring within the search margin are left out of what is held
-            net = values <= search + self.proxy.lipschitz * self.reuse_distance
-            self._held = _Held(relative, search, faces[net], tri[net], bary[net], values[net], grads[net], status[net])
-            faces, tri, bary, values, grads, status = (a[net] for a in (faces, tri, bary, values, grads, status))
+            net = search + self.proxy.lipschitz * self.reuse_distance
+            if self.kernel == "numba":
+                faces, tri, bary, values, grads, status = self._compiled_search(rotation, shift, search, net, stats)
+            else:
+                faces, tri, bary, values, grads, status = self._numpy_search(rotation, shift, search, net, stats)
+            t1 = time.perf_counter()
+            self._held = _Held(relative, search, faces, tri, bary, values, grads, status)
         hit = values <= search
         faces, tri, bary, values, grads, status = faces[hit], tri[hit], bary[hit], values[hit], grads[hit], status[hit]
         points = np.einsum("sv,svc->sc", bary, tri)
@@ -179,6 +187,49 @@ class ProxyCollider:
         (4x4 SDF-from-mesh): the rotation's change times the mesh's radius about its centre, plus the centre's move."""
         turn = now[:3, :3] - then[:3, :3]
         return float(np.linalg.norm(turn) * self._extent + np.linalg.norm(turn @ self._middle + now[:3, 3] - then[:3, 3]))
+
+    # -- the compiled passes (zoo.proxy_kernel) --------------------------------------------------------------------
+
+    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats):
+        """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`); a lazy proxy's bricks
+        the reads met not ready are made ready and the call made again, until none is met."""
+        from . import proxy_kernel as kernel
+
+        if self._scratch is None:
+            self._scratch = _KernelScratch(len(self._v), len(self._f))
+        k = self._scratch
+        lip = self.proxy.lipschitz
+        while True:
+            k.stamp += 1
+            k.counts[:] = 0
+            kernel.search_faces(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
+                                WARM_SEARCH_STEPS, lip, self._clusters, self._cluster_centre, self._cluster_radius,
+                                self._lo, self._hi, self._f, self._v, self._reach, self._ball, self._last_bary,
+                                PATTERN[3:], self.proxy.grid(), k.vertex_stamp, k.stamp, k.vertex_local, k.vertex_answer,
+                                k.missing, k.counts, k.face, k.tri, k.bary, k.value, k.grad, k.status, k.searched_face,
+                                k.searched_bary)
+            missed = int(k.counts[kernel.N_MISSING])
+            if not missed:
+                break
+            if not self.proxy.make_ready(k.missing[:min(missed, k.missing.size)]):
+                pass  # coarse values only: the reads answer now
+        c = k.counts
+        stats.faces_near, stats.faces_skipped = int(c[kernel.FACES_NEAR]), int(c[kernel.FACES_SKIPPED])
+        stats.candidates, stats.warm, stats.cold = int(c[kernel.CANDIDATES]), int(c[kernel.WARM]), int(c[kernel.COLD])
+        stats.screened, stats.cell_queries = int(c[kernel.SCREENED]), stats.cell_queries + int(c[kernel.READS])
+        searched = int(c[kernel.N_SEARCHED])
+        self._last_bary[k.searched_face[:searched]] = k.searched_bary[:searched]
+        n = int(c[kernel.N_OUT])
+        return (k.face[:n].copy(), k.tri[:n].copy(), k.bary[:n].copy(), k.value[:n].copy(), k.grad[:n].copy(),
+                k.status[:n].copy())
+
+    def _numpy_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats):
+        """The faces whose proxy minimum is at most ``net``: (faces (N,), their corners (N, 3, 3) in the SDF's frame,
+        bary (N, 3), values (N,), gradients (N, 3), status (N,)) at the minima (see the module docstring)."""
+        faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
+        bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
+        within = values <= net
+        return faces[within], tri[within], bary[within], values[within], grads[within], status[within]
 
     # -- culling -------------------------------------------------------------------------------------------------
 
@@ -389,6 +440,22 @@ class ProxyCollider:
         return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
                         triangles=torch.from_numpy(np.ascontiguousarray(faces, dtype=np.int64)), bary=as_t(bary),
                         n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+
+
+class _KernelScratch:
+    """The buffers :func:`zoo.proxy_kernel.search_faces` writes into, sized for the mesh (V vertices, F faces) once."""
+
+    def __init__(self, n_vertices: int, n_faces: int):
+        self.stamp = 0
+        self.vertex_stamp = np.zeros(n_vertices, dtype=np.int64)
+        self.vertex_local, self.vertex_answer = np.zeros((n_vertices, 3)), np.zeros((n_vertices, 5))
+        self.missing = np.zeros(4096, dtype=np.int64)
+        from .proxy_kernel import N_COUNTS
+
+        self.counts = np.zeros(N_COUNTS, dtype=np.int64)
+        self.face, self.tri, self.bary = np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3, 3)), np.zeros((n_faces, 3))
+        self.value, self.grad, self.status = np.zeros(n_faces), np.zeros((n_faces, 3)), np.zeros(n_faces, dtype=np.int8)
+        self.searched_face, self.searched_bary = np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3))
 
 
 @dataclass

@@ -1,0 +1,324 @@
+"""The per-face passes of :class:`zoo.proxy_collider.ProxyCollider`, compiled: one loop over the faces near the SDF.
+
+The numpy passes of ``ProxyCollider`` (``kernel="numpy"``, the reference these are tested against) cost a few
+microseconds a numpy call, and a step makes a few hundred of them over thousands of faces. Here the same algorithm
+is one compiled loop (numba, ``cache=True``: compiled once per machine, then loaded): the clusters' cull, each
+face's Lipschitz bound on its vertices' proxy values (each vertex read once a call), the vertex test and the screen,
+and the warm-started projected-gradient search, with the trilinear read (:func:`read`) inlined. Answers are those of
+the numpy passes up to rounding: the same reads at the same points, in the same order per face.
+
+A lazy proxy's brick not ready yet cannot be baked from compiled code (baking asks the SDF): a read that lands in
+one records the brick in ``missing`` and leaves its face out; the caller bakes what was recorded and calls again
+(:meth:`zoo.proxy_collider.ProxyCollider`), so a call answers as if every brick had been ready.
+
+numba is imported here only: ``import zoo`` does not load it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:
+    from numba import njit
+except ImportError as error:  # pragma: no cover - numba is a dependency of sdfzoo
+    raise ImportError("the compiled proxy collider needs numba: pip install numba "
+                      "(or ProxyCollider(kernel='numpy'), the slower numpy passes)") from error
+
+IN_BAND, ABOVE, UNKNOWN = 0, 1, -1  # zoo.proxy's read status
+MISSING = 2  # a read's status where its brick is not ready (a lazy proxy): the caller bakes it and calls again
+BOUNDARY = 1e-9  # as zoo.proxy_collider.BOUNDARY
+TINY = np.finfo(np.float64).tiny
+
+# counts[] slots the kernel fills (zoo.coherence.CoherenceStats names, and the kernel's own)
+N_OUT, FACES_NEAR, FACES_SKIPPED, CANDIDATES, WARM, COLD, SCREENED, READS, N_MISSING, N_SEARCHED = range(10)
+N_COUNTS = 10
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def read(px, py, pz, grid, missing, counts):
+    """The proxy at one point (SDF frame): (value, gx, gy, gz, status), as ``ProxySDF.read_numpy`` gives it; status
+    ``MISSING`` (the rest NaN) where the point's brick is not ready, its flat index then added to ``missing``."""
+    lo, hi, inv_h, band, lip, brick_of, nodes, status, coarse_value, coarse_grad, n_bricks, brick_side, first_centre = grid
+    counts[READS] += 1
+    ux, uy, uz = (px - lo[0]) * inv_h, (py - lo[1]) * inv_h, (pz - lo[2]) * inv_h
+    fx, fy, fz = math.floor(ux), math.floor(uy), math.floor(uz)
+    cx, cy, cz = int(fx), int(fy), int(fz)
+    last_x, last_y, last_z = 8 * n_bricks[0] - 1, 8 * n_bricks[1] - 1, 8 * n_bricks[2] - 1
+    inside = 0 <= cx <= last_x and 0 <= cy <= last_y and 0 <= cz <= last_z
+    if inside:
+        tx, ty, tz = ux - fx, uy - fy, uz - fz
+    else:
+        cx, cy, cz = min(max(cx, 0), last_x), min(max(cy, 0), last_y), min(max(cz, 0), last_z)
+        tx, ty, tz = min(max(ux - cx, 0.0), 1.0), min(max(uy - cy, 0.0), 1.0), min(max(uz - cz, 0.0), 1.0)
+    bx, by, bz = cx >> 3, cy >> 3, cz >> 3
+    flat = (bx * n_bricks[1] + by) * n_bricks[2] + bz
+    row = brick_of[flat]
+    if row < 0:
+        if inside:
+            n = counts[N_MISSING]
+            if n < missing.size:
+                missing[n] = flat
+            counts[N_MISSING] = n + 1
+            return math.nan, math.nan, math.nan, math.nan, MISSING
+        row = 0
+    ix, iy, iz = cx & 7, cy & 7, cz & 7
+    cell_status = status[row * 512 + ix * 64 + iy * 8 + iz]
+    if inside and cell_status == IN_BAND:
+        b = row * 729 + ix * 81 + iy * 9 + iz  # the cell's first node; corner (i, j, k) at b + 81 i + 9 j + k
+        c000, c001, c010, c011 = float(nodes[b]), float(nodes[b + 1]), float(nodes[b + 9]), float(nodes[b + 10])
+        c100, c101, c110, c111 = float(nodes[b + 81]), float(nodes[b + 82]), float(nodes[b + 90]), float(nodes[b + 91])
+        d00, d01, d10, d11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110  # d/dz along the 4 edges
+        e00, e01, e10, e11 = c000 + d00 * tz, c010 + d01 * tz, c100 + d10 * tz, c110 + d11 * tz
+        a0, a1 = e00 + (e01 - e00) * ty, e10 + (e11 - e10) * ty
+        dz0, dz1 = d00 + (d01 - d00) * ty, d10 + (d11 - d10) * ty
+        dy0, dy1 = e01 - e00, e11 - e10
+        return (a0 + (a1 - a0) * tx, (a1 - a0) * inv_h, (dy0 + (dy1 - dy0) * tx) * inv_h,
+                (dz0 + (dz1 - dz0) * tx) * inv_h, IN_BAND)
+    if inside:  # out of band: the brick centre's bound f(c) - L |p - c| (at least the band in an ABOVE cell)
+        ax = px - (bx * brick_side + first_centre[0])
+        ay = py - (by * brick_side + first_centre[1])
+        az = pz - (bz * brick_side + first_centre[2])
+        value = float(coarse_value[flat]) - lip * math.sqrt(ax * ax + ay * ay + az * az)
+        if cell_status == ABOVE:
+            value = max(value, band)
+        gx, gy, gz = float(coarse_grad[flat, 0]), float(coarse_grad[flat, 1]), float(coarse_grad[flat, 2])
+    else:  # outside the region: the band plus the distance to it, pointing away
+        ax = px - min(max(px, lo[0]), hi[0])
+        ay = py - min(max(py, lo[1]), hi[1])
+        az = pz - min(max(pz, lo[2]), hi[2])
+        gap = math.sqrt(ax * ax + ay * ay + az * az)
+        value = band + gap
+        scale = 1.0 / max(gap, TINY)
+        gx, gy, gz = ax * scale, ay * scale, az * scale
+    return value, gx, gy, gz, (ABOVE if value >= band else UNKNOWN)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _frank_wolfe_gap(t, b0, b1, b2, gx, gy, gz):
+    """Frank-Wolfe's gap at barycentrics (b0, b1, b2) on the triangle ``t`` (3, 3) with gradient g there."""
+    s0 = gx * t[0, 0] + gy * t[0, 1] + gz * t[0, 2]
+    s1 = gx * t[1, 0] + gy * t[1, 1] + gz * t[1, 2]
+    s2 = gx * t[2, 0] + gy * t[2, 1] + gz * t[2, 2]
+    return s0 * b0 + s1 * b1 + s2 * b2 - min(s0, s1, s2)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _descent_segment(t, b, gx, gy, gz, direction):
+    """``zoo.proxy_collider._descent_segment`` for one face: the steepest descent's barycentric direction (written
+    into ``direction`` (3,)) and how far along it the triangle reaches (returned; 0 where it goes nowhere)."""
+    e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
+    e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
+    a11, a12, a22 = e1x * e1x + e1y * e1y + e1z * e1z, e1x * e2x + e1y * e2y + e1z * e2z, e2x * e2x + e2y * e2y + e2z * e2z
+    r1, r2 = -(gx * e1x + gy * e1y + gz * e1z), -(gx * e2x + gy * e2y + gz * e2z)
+    det = a11 * a22 - a12 * a12
+    if det > 1e-6 * a11 * a22:
+        x, y = (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
+        direction[0], direction[1], direction[2] = -(x + y), x, y
+    else:  # a needle
+        direction[0] = direction[1] = direction[2] = 0.0
+    blocked, first = 0, 0
+    for v in range(3):
+        if b[v] <= BOUNDARY and direction[v] < 0:
+            if blocked == 0:
+                first = v
+            blocked += 1
+    if blocked == 1:  # along the edge the point lies on (opposite vertex ``first``)
+        j, k = (first + 1) % 3, (first + 2) % 3
+        ex, ey, ez = t[k, 0] - t[j, 0], t[k, 1] - t[j, 1], t[k, 2] - t[j, 2]
+        along = -(gx * ex + gy * ey + gz * ez) / max(ex * ex + ey * ey + ez * ez, TINY)
+        direction[first], direction[j], direction[k] = 0.0, -along, along
+    elif blocked > 1:
+        direction[0] = direction[1] = direction[2] = 0.0
+    reach = math.inf
+    for v in range(3):
+        if direction[v] < 0:
+            reach = min(reach, b[v] / -direction[v])
+    return reach if math.isfinite(reach) else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _on_simplex(b0, b1, b2):
+    b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)
+    s = b0 + b1 + b2
+    return b0 / s, b1 / s, b2 / s
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
+    """``ProxyCollider._descend`` for one face from barycentrics ``b`` (3,) (f0, g there): writes (b0, b1, b2, value,
+    gx, gy, gz, status) of the lower of the segment's end and the parabola's minimiser into ``answer`` (8,)."""
+    reach = _descent_segment(t, b, gx, gy, gz, direction)
+    n0, n1, n2 = _on_simplex(b[0] + reach * direction[0], b[1] + reach * direction[1], b[2] + reach * direction[2])
+    p0x, p0y, p0z = b[0] * t[0, 0] + b[1] * t[1, 0] + b[2] * t[2, 0], b[0] * t[0, 1] + b[1] * t[1, 1] + b[2] * t[2, 1], \
+        b[0] * t[0, 2] + b[1] * t[1, 2] + b[2] * t[2, 2]
+    p1x, p1y, p1z = n0 * t[0, 0] + n1 * t[1, 0] + n2 * t[2, 0], n0 * t[0, 1] + n1 * t[1, 1] + n2 * t[2, 1], \
+        n0 * t[0, 2] + n1 * t[1, 2] + n2 * t[2, 2]
+    f1, g1x, g1y, g1z, s1 = read(p1x, p1y, p1z, grid, missing, counts)
+    if s1 == MISSING:
+        return False
+    slope = (p1x - p0x) * gx + (p1y - p0y) * gy + (p1z - p0z) * gz
+    curvature = f1 - f0 - slope
+    step = 1.0
+    if curvature > 0:
+        step = min(max(-slope / (2 * curvature), 0.0), 1.0)
+    if not math.isfinite(step):
+        step = 0.0
+    m0, m1, m2 = _on_simplex(b[0] + step * reach * direction[0], b[1] + step * reach * direction[1],
+                             b[2] + step * reach * direction[2])
+    fm, gmx, gmy, gmz, sm = read(m0 * t[0, 0] + m1 * t[1, 0] + m2 * t[2, 0], m0 * t[0, 1] + m1 * t[1, 1] + m2 * t[2, 1],
+                                 m0 * t[0, 2] + m1 * t[1, 2] + m2 * t[2, 2], grid, missing, counts)
+    if sm == MISSING:
+        return False
+    if f1 < fm:
+        answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = n0, n1, n2, f1, g1x, g1y, g1z, s1
+    else:
+        answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = m0, m1, m2, fm, gmx, gmy, gmz, sm
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, lipschitz,
+                 clusters, cluster_centre, cluster_radius, bounds_lo, bounds_hi,
+                 faces, vertices, reach, ball, last_bary, pattern, grid,
+                 vertex_stamp, stamp, vertex_local, vertex_answer, missing, counts,
+                 out_face, out_tri, out_bary, out_value, out_grad, out_status, searched_face, searched_bary):
+    """The cull and the search of one call (``ProxyCollider._near_faces`` then ``_search``, see its module docstring).
+
+    Args:
+        rotation (3, 3), shift (3,): the mesh's pose in the SDF's frame. search: the search margin; net: the value up
+            to which a face's answer is written out; stop: the Frank-Wolfe gap below which a search stops.
+        search_steps, warm_steps: the descents a cold and a warm face take at most. lipschitz: the proxy's L.
+        clusters (C, K) int64 faces (-1 padding), cluster_centre (C, 3), cluster_radius (C,): the mesh frame's clusters.
+        bounds_lo, bounds_hi (3,): the SDF's bounds. faces (F, 3) int64, vertices (V, 3): the mesh.
+        reach (F, 3), ball (F,): ``zoo.bounds.triangle_reach``. last_bary (F, 3): each face's last answer (NaN: none).
+        pattern (P, 3): a cold face's starts. grid: ``ProxySDF.grid()``.
+        vertex_stamp (V,) int64, stamp: a vertex whose stamp is ``stamp`` was read this call, its SDF-frame place in
+            ``vertex_local`` (V, 3) and its read in ``vertex_answer`` (V, 5) (value, gradient, status).
+        missing (M,) int64: bricks not ready that reads met. counts (N_COUNTS,) int64, zeroed by the caller.
+        out_*: (F, ...) the faces whose answer is at most ``net`` (``counts[N_OUT]`` rows): face, SDF-frame corners
+            (3, 3), barycentrics, value, gradient, status. searched_face (F,), searched_bary (F, 3): the faces
+            searched inside and their answers (``counts[N_SEARCHED]`` rows), the next call's warm starts.
+    """
+    near = np.empty(faces.shape[0], dtype=np.int64)
+    n_near = 0
+    t = np.empty((3, 3))
+    b = np.empty(3)
+    direction = np.empty(3)
+    answer = np.empty(8)
+    n_clusters, size = clusters.shape
+    for c in range(n_clusters):
+        # the cluster's ball: beyond the SDF's bounds grown by the search margin, or proven above it by one read
+        px = rotation[0, 0] * cluster_centre[c, 0] + rotation[0, 1] * cluster_centre[c, 1] + rotation[0, 2] * cluster_centre[c, 2] + shift[0]
+        py = rotation[1, 0] * cluster_centre[c, 0] + rotation[1, 1] * cluster_centre[c, 1] + rotation[1, 2] * cluster_centre[c, 2] + shift[1]
+        pz = rotation[2, 0] * cluster_centre[c, 0] + rotation[2, 1] * cluster_centre[c, 1] + rotation[2, 2] * cluster_centre[c, 2] + shift[2]
+        ox = max(bounds_lo[0] - px, 0.0) + max(px - bounds_hi[0], 0.0)
+        oy = max(bounds_lo[1] - py, 0.0) + max(py - bounds_hi[1], 0.0)
+        oz = max(bounds_lo[2] - pz, 0.0) + max(pz - bounds_hi[2], 0.0)
+        if math.sqrt(ox * ox + oy * oy + oz * oz) > cluster_radius[c] + search:
+            continue
+        value = read(px, py, pz, grid, missing, counts)[0]
+        if not value - lipschitz * cluster_radius[c] <= search:  # NaN (missing) keeps it: its faces say
+            if math.isfinite(value):
+                continue
+        for slot in range(size):
+            face = clusters[c, slot]
+            if face >= 0:
+                near[n_near] = face
+                n_near += 1
+    counts[FACES_NEAR] = n_near
+    for i in range(n_near):
+        face = near[i]
+        lost = False  # a read met a brick not ready: the face is left out (the caller calls again)
+        for k in range(3):
+            v = faces[face, k]
+            if vertex_stamp[v] != stamp:
+                for a in range(3):
+                    vertex_local[v, a] = (rotation[a, 0] * vertices[v, 0] + rotation[a, 1] * vertices[v, 1]
+                                          + rotation[a, 2] * vertices[v, 2] + shift[a])
+                f, gx, gy, gz, s = read(vertex_local[v, 0], vertex_local[v, 1], vertex_local[v, 2], grid, missing, counts)
+                if s == MISSING:
+                    lost = True
+                    break
+                vertex_answer[v, 0], vertex_answer[v, 1], vertex_answer[v, 2], vertex_answer[v, 3], vertex_answer[v, 4] = f, gx, gy, gz, s
+                vertex_stamp[v] = stamp
+            t[k, 0], t[k, 1], t[k, 2] = vertex_local[v, 0], vertex_local[v, 1], vertex_local[v, 2]
+        if lost:
+            continue
+        v0, v1, v2 = faces[face, 0], faces[face, 1], faces[face, 2]
+        f0, f1, f2 = vertex_answer[v0, 0], vertex_answer[v1, 0], vertex_answer[v2, 0]
+        # the Lipschitz bound on the vertices' values
+        bound = max(max(f0 - lipschitz * reach[face, 0], f1 - lipschitz * reach[face, 1]), f2 - lipschitz * reach[face, 2])
+        bound = max(bound, min(f0, f1, f2) - lipschitz * ball[face])
+        if bound > search:
+            counts[FACES_SKIPPED] += 1
+            continue
+        counts[CANDIDATES] += 1
+        lowest = 0
+        if f1 < f0:
+            lowest = 1
+        if f2 < (f1 if lowest == 1 else f0):
+            lowest = 2
+        vl = faces[face, lowest]
+        b[0] = b[1] = b[2] = 0.0
+        b[lowest] = 1.0
+        value, gx, gy, gz, state = vertex_answer[vl, 0], vertex_answer[vl, 1], vertex_answer[vl, 2], vertex_answer[vl, 3], vertex_answer[vl, 4]
+        gap = _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz)
+        if value - gap > search:
+            counts[SCREENED] += 1
+        elif gap > stop:  # the search inside: from the last answer (warm) or the lowest of the pattern's points (cold)
+            warm = math.isfinite(last_bary[face, 0])
+            if warm:
+                counts[WARM] += 1
+                first, last = 0, 1
+            else:
+                counts[COLD] += 1
+                first, last = 0, pattern.shape[0]
+            best, best_s = math.inf, 0
+            best_b0 = best_b1 = best_b2 = best_gx = best_gy = best_gz = 0.0
+            for k in range(first, last):
+                if warm:
+                    s0, s1, s2 = last_bary[face, 0], last_bary[face, 1], last_bary[face, 2]
+                else:
+                    s0, s1, s2 = pattern[k, 0], pattern[k, 1], pattern[k, 2]
+                fs, sx, sy, sz, ss = read(s0 * t[0, 0] + s1 * t[1, 0] + s2 * t[2, 0], s0 * t[0, 1] + s1 * t[1, 1] + s2 * t[2, 1],
+                                          s0 * t[0, 2] + s1 * t[1, 2] + s2 * t[2, 2], grid, missing, counts)
+                if ss == MISSING:
+                    lost = True
+                    break
+                if fs < best:
+                    best, best_s, best_b0, best_b1, best_b2, best_gx, best_gy, best_gz = fs, ss, s0, s1, s2, sx, sy, sz
+            if lost:
+                continue
+            if best < value:
+                b[0], b[1], b[2], value, gx, gy, gz, state = best_b0, best_b1, best_b2, best, best_gx, best_gy, best_gz, best_s
+            for step in range(search_steps):
+                if warm and step == warm_steps:
+                    break
+                gap = _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz)
+                if not (gap > stop and value - gap <= search):
+                    break
+                if not _descend(t, b, value, gx, gy, gz, grid, missing, counts, direction, answer):
+                    lost = True
+                    break
+                if not answer[3] < value:
+                    break
+                b[0], b[1], b[2], value, gx, gy, gz, state = answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7]
+            if lost:
+                continue
+            n = counts[N_SEARCHED]
+            searched_face[n] = face
+            searched_bary[n, 0], searched_bary[n, 1], searched_bary[n, 2] = b[0], b[1], b[2]
+            counts[N_SEARCHED] = n + 1
+        if value <= net:
+            n = counts[N_OUT]
+            out_face[n] = face
+            for k in range(3):
+                out_bary[n, k] = b[k]
+                for a in range(3):
+                    out_tri[n, k, a] = t[k, a]
+            out_value[n] = value
+            out_grad[n, 0], out_grad[n, 1], out_grad[n, 2] = gx, gy, gz
+            out_status[n] = int(state)
+            counts[N_OUT] = n + 1
