@@ -16,6 +16,7 @@ from zoo.errors import ChecksumError, InputError, ModelNotFoundError
 from zoo.meshes import Similarity
 from zoo.model import Model, fit_code_cloud
 from zoo.neural import NeuralSDF, NeuralSDFConfig, NeuralShape, code_weights, interpolate_codes
+from zoo.neural_numpy import SMALL_BATCH
 
 SMALL = NeuralSDFConfig(n_codes=16, code_dim=8, hidden=(16, 16))
 
@@ -105,6 +106,33 @@ def test_value_and_grad_by_hand_matches_autograd(smooth_beta, fourier_levels, dt
     assert torch.allclose(d, shape(p), atol=tol, rtol=0)
     assert torch.allclose(g[3:], ref_g[3:], atol=tol * float(ref_g.abs().max()), rtol=0)
     assert torch.isfinite(g[:3]).all()
+
+
+@pytest.mark.parametrize("smooth_beta,fourier_levels", [(0.0, 0), (100.0, 0), (100.0, 5)], ids=["leaky", "smooth", "fourier"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_levels, dtype):
+    """A few points (at most SMALL_BATCH, as a simulation step asks) take zoo.neural_numpy's path; its values and
+    gradients are autograd's through the torch forward pass, points on code positions included."""
+    config = dataclasses.replace(SMALL, hidden=(32, 32, 32), smooth_beta=smooth_beta, fourier_levels=fourier_levels)
+    torch.manual_seed(4)
+    m = NeuralSDF(config, 1, torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        m.codes.normal_(0.0, 0.3)
+    shape = NeuralShape("a", m.decoder, config, m.codes[0], m.positions[0], SIM)
+    p = (torch.rand(SMALL_BATCH, 3, dtype=torch.float64) - 0.5) * 0.5
+    p[:3] = torch.as_tensor(SIM.to_source(m.positions[0, :3].detach().double().numpy()))  # exactly on codes
+    p = p.to(dtype)
+    assert shape._numpy_network(dtype) is not None  # the numpy path is the one taken
+    for n in (1, 7, SMALL_BATCH):
+        d, g = shape.value_and_grad(p[:n])
+        x = p[:n].clone().requires_grad_(True)
+        with torch.enable_grad():
+            (ref_g,) = torch.autograd.grad(shape(x).sum(), x)
+        tol = 1e-4 if dtype == torch.float32 else 1e-9
+        assert d.dtype == g.dtype == dtype and d.shape == (n,) and g.shape == (n, 3)
+        assert torch.allclose(d, shape(p[:n]), atol=tol, rtol=0)
+        assert torch.allclose(g[3:], ref_g[3:], atol=tol * float(ref_g.abs().max()), rtol=0)
+        assert torch.isfinite(g).all()
 
 
 def test_dtypes_are_kept_and_bad_input_rejected():

@@ -24,11 +24,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
 from .config import DictConfig
 from .errors import InputError
+from .neural_numpy import SMALL_BATCH, NumpyNetwork
 from .sdf import SDFBase
 from .validation import as_points
 
@@ -513,6 +515,13 @@ class NeuralShape(SDFBase):
     def _value_and_grad(self, points: torch.Tensor, create_graph: bool = False):
         n = chunk_size(self.config.n_codes)
         if not create_graph and not (torch.is_grad_enabled() and points.requires_grad):
+            if points.shape[0] <= SMALL_BATCH and points.device.type == "cpu":
+                network = self._numpy_network(points.dtype)
+                if network is not None:
+                    s, r, t = self._similarity_numpy(network.dtype)
+                    values, grads = network.value_and_grad(s * points.numpy() @ r.T + t)
+                    # the source frame's gradient: R^T grad_n (the scale cancels)
+                    return torch.from_numpy(values / s), torch.from_numpy(grads @ r)
             fast = self._value_and_grad_by_hand(points, n)
             if fast is not None:
                 return fast
@@ -525,6 +534,34 @@ class NeuralShape(SDFBase):
             values.append(d if create_graph else d.detach())
             grads.append(g if create_graph else g.detach())
         return torch.cat(values), torch.cat(grads)
+
+    def _numpy_network(self, dtype: torch.dtype) -> NumpyNetwork | None:
+        """:class:`zoo.neural_numpy.NumpyNetwork` of this shape in ``dtype`` (built once, and again when the decoder's
+        parameters change); None where :meth:`_value_and_grad_by_hand` does not apply."""
+        dec = self._decoder_no_grad(dtype, "cpu")
+        _, pos, codes, direct = self._cached(dtype, "cpu")
+        if direct is None or not isinstance(dec, InferenceDecoder) or dtype not in (torch.float32, torch.float64):
+            return None
+        key = ("numpy", dtype)
+        held = self._copies.get(key)
+        if held is None or held[0] is not dec:
+            network = NumpyNetwork(weights=[w.detach().numpy() for w in dec.weights], out_weight=dec.out_weight.detach().numpy(),
+                                   out_bias=dec.out_bias.detach().numpy(), cloud_b=direct[0].detach().numpy(),
+                                   codes_1=direct[1].detach().numpy(), positions=pos[0].detach().numpy(),
+                                   codes=codes[0].detach().numpy(), eps=self.config.eps,
+                                   negative_slope=self.decoder.negative_slope, smooth_beta=self.decoder.smooth_beta,
+                                   fourier_levels=self.decoder.fourier_levels, dtype=np.float32 if dtype == torch.float32 else np.float64)
+            held = self._copies[key] = (dec, network)
+        return held[1]
+
+    def _similarity_numpy(self, dtype: np.dtype) -> tuple:
+        """This shape's similarity (scale, rotation (3, 3), translation (3,)) in numpy ``dtype`` (kept per shape: the
+        normalised view shares the networks, not the frame)."""
+        held = self.__dict__.setdefault("_similarity_np", {})
+        if dtype not in held:
+            sim = self.similarity
+            held[dtype] = (dtype.type(sim.scale), np.asarray(sim.rotation, dtype=dtype), np.asarray(sim.translation, dtype=dtype))
+        return held[dtype]
 
     def _value_and_grad_by_hand(self, points: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """:meth:`_value_and_grad` with the chain rule written out (:meth:`InferenceDecoder.value_and_input_grad`,
