@@ -312,6 +312,58 @@ class _CountingSDF:
         return self.sdf.value_and_grad(points)
 
 
+@dataclass
+class VertexBounds:
+    """What :class:`CoherentCollider` carries per mesh vertex (V of them): ``anchor`` (V, 3) where its bound holds (SDF
+    frame), ``lower`` (V,) the bound of f there, ``exact`` (V,) bool whether the bound is f itself."""
+
+    anchor: torch.Tensor
+    lower: torch.Tensor
+    exact: torch.Tensor
+
+    @classmethod
+    def empty(cls, vertices: torch.Tensor) -> VertexBounds:
+        v = vertices
+        return cls(torch.zeros_like(v), torch.full(v.shape[:1], -torch.inf, dtype=v.dtype, device=v.device),
+                   torch.zeros(v.shape[:1], dtype=torch.bool, device=v.device))
+
+
+@dataclass
+class FaceAnswers:
+    """The last answer per face (F of them): ``bary`` (F, 3), ``value`` (F,) f there (-inf: none), ``at`` (F, 3, 3) the
+    face in the SDF's frame when it was answered, ``normal`` (F, 3) the unit gradient there (NaN: not a contact)."""
+
+    bary: torch.Tensor
+    value: torch.Tensor
+    at: torch.Tensor
+    normal: torch.Tensor
+
+    @classmethod
+    def empty(cls, vertices: torch.Tensor, n_faces: int) -> FaceAnswers:
+        v = vertices
+        return cls(v.new_zeros((n_faces, 3)), torch.full((n_faces,), -torch.inf, dtype=v.dtype, device=v.device),
+                   v.new_zeros((n_faces, 3, 3)), torch.full((n_faces, 3), torch.nan, dtype=v.dtype, device=v.device))
+
+
+@dataclass
+class ClearedFaces:
+    """Faces proven clear of the margin (F of them): ``bound`` (F,) a lower bound of f on the face (-inf: none),
+    proven at entry ``pose`` (F,) of ``poses`` (H, 3, 4) (the SDF-from-mesh transforms of the calls so far), with the
+    face's centroid then at ``centroid`` (F, 3) (SDF frame)."""
+
+    bound: torch.Tensor
+    pose: torch.Tensor
+    centroid: torch.Tensor
+    poses: torch.Tensor
+
+    @classmethod
+    def empty(cls, vertices: torch.Tensor, n_faces: int) -> ClearedFaces:
+        d = vertices.device
+        return cls(torch.full((n_faces,), -torch.inf, dtype=torch.float64, device=d),
+                   torch.zeros(n_faces, dtype=torch.int64, device=d),
+                   torch.zeros((n_faces, 3), dtype=torch.float64, device=d), torch.zeros((0, 3, 4), dtype=torch.float64, device=d))
+
+
 class CoherentCollider:
     """``zoo.collide`` for one SDF-mesh pair along a trajectory, reusing what the last steps proved.
 
@@ -379,17 +431,9 @@ class CoherentCollider:
     def reset(self) -> None:
         """Forget everything carried over (the next call works from scratch); ``stats`` are kept."""
         v, f = self.vertices, self.faces
-        self._anchor = torch.zeros_like(v)  # (V, 3) where each vertex's bound holds, SDF frame
-        self._lower = torch.full(v.shape[:1], -torch.inf, dtype=v.dtype, device=v.device)  # (V,) bound of f there
-        self._exact = torch.zeros(v.shape[:1], dtype=torch.bool, device=v.device)  # (V,) the bound is f itself
-        self._bary = v.new_zeros((f.shape[0], 3))  # (F, 3) each face's last answer
-        self._answer = torch.full(f.shape[:1], -torch.inf, dtype=v.dtype, device=v.device)  # (F,) f at the last answer
-        self._answered_at = v.new_zeros((f.shape[0], 3, 3))  # (F, 3, 3) the face, SDF frame, when it was answered
-        self._answer_normal = torch.full((f.shape[0], 3), torch.nan, dtype=v.dtype, device=v.device)  # (F, 3) there, if a contact
-        self._clear_bound = torch.full(f.shape[:1], -torch.inf, dtype=torch.float64, device=v.device)  # (F,) proven lower bound of f on the face
-        self._clear_pose = torch.zeros(f.shape[:1], dtype=torch.int64, device=v.device)  # (F,) at this entry of _poses
-        self._clear_centroid = torch.zeros((f.shape[0], 3), dtype=torch.float64, device=v.device)  # (F, 3) SDF frame, then
-        self._poses = torch.zeros((0, 3, 4), dtype=torch.float64, device=v.device)  # (H, 3, 4) SDF-from-mesh, one per call
+        self._vertex = VertexBounds.empty(v)
+        self._answers = FaceAnswers.empty(v, f.shape[0])
+        self._cleared = ClearedFaces.empty(v, f.shape[0])
         if self._on_proxy is not None:
             self._on_proxy.reset()
 
@@ -483,12 +527,12 @@ class CoherentCollider:
         near = near[~self._still_clear(near, margin)]
         slack, moved = self._answer_slack(local, near, margin)
         clears = slack > 0
-        answered = ~clears & torch.isfinite(self._answer[near])
+        answered = ~clears & torch.isfinite(self._answers.value[near])
         reusable = answered & (moved <= self.reuse_distance)
         if (answered & ~reusable).any():  # a round of queries is due anyway: bring the faces soon due along
             reusable &= moved <= REFRESH_FRACTION * self.reuse_distance
             clears &= slack > REFRESH_FRACTION * self.lipschitz * self.reuse_distance
-            answered = ~clears & torch.isfinite(self._answer[near])
+            answered = ~clears & torch.isfinite(self._answers.value[near])
         warmable = answered & ~reusable & self._warm_reach(local, near, moved)
         # kept and warm-started answers need no bounds: only the others go through them
         self._prove_clear(near[clears], slack[clears] + margin, margin)
@@ -523,16 +567,16 @@ class CoherentCollider:
         kind = torch.cat([torch.full_like(cold, COLD), torch.full_like(warm, WARM), torch.full_like(kept, KEPT)])[order]
         stats.candidates, stats.reused = int(candidates.numel()), int(kept.numel())
         stats.faces_skipped -= int(kept.numel() + warm.numel())
-        fresh = self._exact & (self._anchor == local).all(dim=-1)
-        return candidates, kind, torch.where(fresh, self._lower, torch.full_like(self._lower, torch.nan))
+        fresh = self._vertex.exact & (self._vertex.anchor == local).all(dim=-1)
+        return candidates, kind, torch.where(fresh, self._vertex.lower, torch.full_like(self._vertex.lower, torch.nan))
 
     def _evaluate_vertices(self, local: torch.Tensor, faces: torch.Tensor) -> int:
         """Evaluate f at the vertices of ``faces`` (N,) not yet evaluated where they are now; returns how many."""
         v = torch.unique(self.faces[faces])
-        v = v[~(self._exact[v] & (self._anchor[v] == local[v]).all(dim=-1))]
+        v = v[~(self._vertex.exact[v] & (self._vertex.anchor[v] == local[v]).all(dim=-1))]
         if v.numel():
             with torch.no_grad():
-                values = torch.as_tensor(self.sdf(local[v])).reshape(-1).to(self._lower)
+                values = torch.as_tensor(self.sdf(local[v])).reshape(-1).to(self._vertex.lower)
             self._anchor_at(v, local, values, exact=True)
         return int(v.numel())
 
@@ -544,16 +588,16 @@ class CoherentCollider:
         transforms (A_k, b_k) of the proof and (A, b) now: at most |(A - A_k) g + b - b_k| + ||A - A_k||_F r (the
         Frobenius norm bounds the spectral one).
         """
-        bound = self._clear_bound[faces]
+        bound = self._cleared.bound[faces]
         out = torch.zeros(faces.shape, dtype=torch.bool, device=faces.device)
         rows = (bound > margin).nonzero().squeeze(-1)
         if not rows.numel():
             return out
-        f, now = faces[rows], self._poses[-1]
-        turn = (self._poses[:, :, :3] - now[:, :3]).flatten(1).norm(dim=-1)  # (H,) ||A - A_k||_F per call so far
+        f, now = faces[rows], self._cleared.poses[-1]
+        turn = (self._cleared.poses[:, :, :3] - now[:, :3]).flatten(1).norm(dim=-1)  # (H,) ||A - A_k||_F per call so far
         radius = self._face_radius[f]
         centroid = self._centroid[f] @ now[:, :3].T + now[:, 3]
-        reach = (centroid - self._clear_centroid[f]).norm(dim=-1) + turn[self._clear_pose[f]] * radius
+        reach = (centroid - self._cleared.centroid[f]).norm(dim=-1) + turn[self._cleared.pose[f]] * radius
         size = (centroid.abs().amax(dim=-1) + radius).to(self.vertices.dtype)
         slack = rounding_slack(bound[rows].abs().to(size), reach.to(size), size)
         out[rows] = bound[rows] - self.lipschitz * reach - slack > margin
@@ -564,28 +608,28 @@ class CoherentCollider:
         spare (more than L times ``reuse_distance`` above ``margin``) keep it; the others stay in the exact tests, which
         are tighter and where a round of queries finds them."""
         spare = bound - margin > self.lipschitz * self.reuse_distance
-        faces, bound, now = faces[spare], bound[spare], self._poses[-1]
-        self._clear_bound[faces] = bound.to(self._clear_bound)
-        self._clear_pose[faces] = self._poses.shape[0] - 1
-        self._clear_centroid[faces] = self._centroid[faces] @ now[:, :3].T + now[:, 3]
+        faces, bound, now = faces[spare], bound[spare], self._cleared.poses[-1]
+        self._cleared.bound[faces] = bound.to(self._cleared.bound)
+        self._cleared.pose[faces] = self._cleared.poses.shape[0] - 1
+        self._cleared.centroid[faces] = self._centroid[faces] @ now[:, :3].T + now[:, 3]
 
     def _record_pose(self, relative: torch.Tensor) -> None:
         """Append this call's SDF-from-mesh transform (4, 4) to the pose history, dropping its older half when full."""
-        if self._poses.shape[0] == POSE_HISTORY:
+        if self._cleared.poses.shape[0] == POSE_HISTORY:
             dropped = POSE_HISTORY // 2
-            self._clear_bound[self._clear_pose < dropped] = -torch.inf
-            self._clear_pose = (self._clear_pose - dropped).clamp_min(0)
-            self._poses = self._poses[dropped:]
-        self._poses = torch.cat([self._poses, relative[:3].unsqueeze(0)])
+            self._cleared.bound[self._cleared.pose < dropped] = -torch.inf
+            self._cleared.pose = (self._cleared.pose - dropped).clamp_min(0)
+            self._cleared.poses = self._cleared.poses[dropped:]
+        self._cleared.poses = torch.cat([self._cleared.poses, relative[:3].unsqueeze(0)])
 
     def _answer_slack(self, local: torch.Tensor, faces: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
         """((N,), (N,)) for the faces ``faces`` (N,): how far their last answer, less the Lipschitz bound times the
         farthest any of their points moved since (a rigid motion moves a triangle's points at most as far as its
         farthest vertex), is still above ``margin`` (positive: the minimum the method found then cannot have come
         within it), and that farthest motion."""
-        answered, now = self._answered_at[faces], local[self.faces[faces]]
+        answered, now = self._answers.at[faces], local[self.faces[faces]]
         moved = (now - answered).norm(dim=-1).amax(dim=-1)
-        answer = self._answer[faces]
+        answer = self._answers.value[faces]
         size = torch.maximum(now.abs().amax(dim=(1, 2)), answered.abs().amax(dim=(1, 2)))
         return answer - self.lipschitz * moved - rounding_slack(answer.abs(), moved, size) - margin, moved
 
@@ -593,25 +637,25 @@ class CoherentCollider:
         """Lower bounds (U,) of f at the vertices ``used`` (U,) at their present position ``local[used]``:
         the anchor's bound less the distance moved since (Lipschitz), less rounding slack; a vertex
         evaluated exactly where it is now keeps its value as it is."""
-        here, anchor, bound = local[used], self._anchor[used], self._lower[used]
+        here, anchor, bound = local[used], self._vertex.anchor[used], self._vertex.lower[used]
         moved = (here - anchor).norm(dim=-1)
         size = torch.maximum(here.abs().amax(dim=-1), anchor.abs().amax(dim=-1))
         carried = bound - self.lipschitz * moved - rounding_slack(bound.abs(), moved, size)
-        unmoved = self._exact[used] & (here == anchor).all(dim=-1)
+        unmoved = self._vertex.exact[used] & (here == anchor).all(dim=-1)
         return torch.where(unmoved, bound, carried)
 
     def _stale(self, used: torch.Tensor, corner: torch.Tensor, open_: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
         """Rows of ``used`` (the open faces' vertices) whose f is not known exactly at their present position."""
         rows = torch.unique(corner[open_])
         v = used[rows]
-        known = self._exact[v] & (self._anchor[v] == local[v]).all(dim=-1)
+        known = self._vertex.exact[v] & (self._vertex.anchor[v] == local[v]).all(dim=-1)
         return rows[~known]
 
     def _anchor_at(self, vertices: torch.Tensor, local: torch.Tensor, lower: torch.Tensor, exact: bool) -> None:
         """Vertices ``vertices`` (K,) now hold the bound ``lower`` (K,) at their present position."""
-        self._anchor[vertices] = local[vertices]
-        self._lower[vertices] = lower
-        self._exact[vertices] = exact
+        self._vertex.anchor[vertices] = local[vertices]
+        self._vertex.lower[vertices] = lower
+        self._vertex.exact[vertices] = exact
 
     # -- narrow phase ---------------------------------------------------------------------------
 
@@ -636,7 +680,7 @@ class CoherentCollider:
             if w.numel():
                 fv = f_exact[faces[w]] if solve_sdf is self.sdf else _values(solve_sdf, tri[w])
                 bary[w], depths[w], grads[w], screened = self._warm(solve_sdf, local, faces[w], tri[w],
-                                                                     self._bary[candidates[w]], fv, margin)
+                                                                     self._answers.bary[candidates[w]], fv, margin)
                 stats.screened = int(screened.sum())
                 # a warm answer far from the KKT conditions (a kink of the SDF, a minimum that jumped) is solved
                 # again from scratch too, and the lower answer kept; not where the gap proves the face stays above
@@ -664,8 +708,8 @@ class CoherentCollider:
     def _kept_answers(self, faces: torch.Tensor, tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The last answers of the faces ``faces`` (R,), now at ``tri`` (R, 3, 3): bary (R, 3), depths (R,) moved to
         first order along their normal (unchanged where none is known), normals (R, 3) (NaN where unknown)."""
-        bary, normal = self._bary[faces], self._answer_normal[faces]
-        return bary, moved_along_normal(self._answer[faces], normal, tri, self._answered_at[faces], bary), normal
+        bary, normal = self._answers.bary[faces], self._answers.normal[faces]
+        return bary, moved_along_normal(self._answers.value[faces], normal, tri, self._answers.at[faces], bary), normal
 
     def _warm_reach(self, local: torch.Tensor, faces: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the faces ``faces`` (N,), which moved ``moved`` (N,) since their last answer, moved less than
@@ -742,8 +786,8 @@ class CoherentCollider:
         where not a contact) and where they were (a kept answer stays as it was solved), which faces were
         candidates, and the vertices' positions."""
         solved = ~reused
-        self._bary[candidates[solved]] = bary[solved].to(self._bary)
-        self._answer[candidates[solved]] = depths[solved].to(self._answer)
-        self._answered_at[candidates[solved]] = local[self.faces[candidates[solved]]]
-        self._answer_normal[candidates[solved]] = normals[solved].to(self._answer_normal)
+        self._answers.bary[candidates[solved]] = bary[solved].to(self._answers.bary)
+        self._answers.value[candidates[solved]] = depths[solved].to(self._answers.value)
+        self._answers.at[candidates[solved]] = local[self.faces[candidates[solved]]]
+        self._answers.normal[candidates[solved]] = normals[solved].to(self._answers.normal)
         self.last_candidates = candidates

@@ -114,16 +114,15 @@ class ProxyCollider:
         self._lo, self._hi = lo, hi
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()
+        if kernel == "numba":  # compiled (or loaded from numba's cache) now, not in the first step
+            self._compiled_search(np.eye(3), np.zeros(3), self.margin, self.margin, CoherenceStats(), self._clusters[:0])
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
         n = len(self._f)
-        self._last_bary = np.full((n, 3), np.nan)  # (F, 3) each face's last proxy answer (NaN: none)
-        self._exact_bary = np.zeros((n, 3))  # (F, 3) the SDF's last answer per face
-        self._exact_value = np.full(n, np.nan)  # (F,) NaN: none
-        self._exact_grad = np.zeros((n, 3))  # (F, 3)
-        self._exact_at = np.zeros((n, 3, 3))  # (F, 3, 3) the face, SDF frame, when the SDF answered it
-        self._pending = None
+        self._last_bary = np.full((n, 3), np.nan)  # (F, 3) each face's last proxy answer, the search's warm start (NaN: none)
+        self._answers = _SDFAnswers.empty(n)  # the SDF's last answer per face
+        self._pending = None  # the last call's proxy contacts (_ProxyContacts), for the SDF to answer
         self._held = None  # the last full search's answers within its net (_Held), carried while the motion is small
         self._scratch = None  # the compiled passes' buffers (_KernelScratch), made at their first call
         self.last_candidates = torch.zeros(0, dtype=torch.int64)
@@ -159,7 +158,7 @@ class ProxyCollider:
         hit = values <= search
         faces, tri, bary, values, grads, status = faces[hit], tri[hit], bary[hit], values[hit], grads[hit], status[hit]
         points = np.einsum("sv,svc->sc", bary, tri)
-        self._pending = (sdf_pose, faces, tri, bary, points, status, margin)
+        self._pending = _ProxyContacts(sdf_pose, faces, tri, bary, status, margin)
         self.last_candidates = torch.from_numpy(faces)
         t2 = time.perf_counter()
         if self.deferred:
@@ -191,9 +190,9 @@ class ProxyCollider:
 
     # -- the compiled passes (zoo.proxy_kernel) --------------------------------------------------------------------
 
-    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats):
-        """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`); a lazy proxy's bricks
-        the reads met not ready are made ready and the call made again, until none is met."""
+    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats, clusters=None):
+        """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`) over ``clusters`` (default:
+        all); a lazy proxy's bricks the reads met not ready are made ready and the call made again, until none is met."""
         from . import proxy_kernel as kernel
 
         if self._scratch is None:
@@ -204,7 +203,8 @@ class ProxyCollider:
             k.stamp += 1
             k.counts[:] = 0
             kernel.search_faces(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
-                                WARM_SEARCH_STEPS, lip, self._clusters, self._cluster_centre, self._cluster_radius,
+                                WARM_SEARCH_STEPS, lip, self._clusters if clusters is None else clusters,
+                                self._cluster_centre, self._cluster_radius,
                                 self._lo, self._hi, self._f, self._v, self._reach, self._ball, self._last_bary,
                                 PATTERN[3:], self.proxy.grid(), k.vertex_stamp, k.stamp, k.vertex_local, k.vertex_answer,
                                 k.missing, k.counts, k.face, k.tri, k.bary, k.value, k.grad, k.status, k.searched_face,
@@ -212,8 +212,7 @@ class ProxyCollider:
             missed = int(k.counts[kernel.N_MISSING])
             if not missed:
                 break
-            if not self.proxy.make_ready(k.missing[:min(missed, k.missing.size)]):
-                pass  # coarse values only: the reads answer now
+            self.proxy.make_ready(k.missing[:min(missed, k.missing.size)])  # then the reads there answer
         c = k.counts
         stats.faces_near, stats.faces_skipped = int(c[kernel.FACES_NEAR]), int(c[kernel.FACES_SKIPPED])
         stats.candidates, stats.warm, stats.cold = int(c[kernel.CANDIDATES]), int(c[kernel.WARM]), int(c[kernel.COLD])
@@ -360,31 +359,25 @@ class ProxyCollider:
 
     def _exact(self, rows: np.ndarray, stats: CoherenceStats) -> Contacts:
         """The SDF's contacts at the rows ``rows`` of the last call's proxy contacts (see the module docstring)."""
-        sdf_pose, faces, tri, bary, points, status, margin = self._pending
-        faces, tri, bary, status = faces[rows], tri[rows], bary[rows].copy(), status[rows]
+        pending = self._pending
+        faces, tri, bary, status = pending.faces[rows], pending.tri[rows], pending.bary[rows].copy(), pending.status[rows]
         n = len(faces)
         stats.exact_faces += n
         values, grads = np.zeros(n), np.zeros((n, 3))
-        stored = self._exact_value[faces]
-        moved = np.linalg.norm(tri - self._exact_at[faces], axis=-1).max(axis=-1) if n else np.zeros(0)
-        kept = np.isfinite(stored) & (moved <= self.reuse_distance)
-        k = np.flatnonzero(kept)
+        k = np.flatnonzero(self._answers.unmoved(faces, tri, self.reuse_distance))
         if k.size:  # a persistent contact: its depth moved to first order along its normal
-            b, g = self._exact_bary[faces[k]], self._exact_grad[faces[k]]
-            bary[k], grads[k] = b, g
-            values[k] = moved_along_normal(*(torch.from_numpy(a) for a in (stored[k], _unit(g), tri[k], self._exact_at[faces[k]], b))).numpy()
+            bary[k], values[k], grads[k] = self._answers.carried(faces[k], tri[k])
             stats.exact_kept += int(k.size)
-        a = np.flatnonzero(~kept)
+        a = np.setdiff1d(np.arange(n), k, assume_unique=True)
         if a.size:
-            bary[a], values[a], grads[a] = self._answer(tri[a], bary[a], status[a], faces[a], margin, stats)
-            done = faces[a]
-            self._exact_bary[done], self._exact_value[done], self._exact_grad[done] = bary[a], values[a], grads[a]
-            self._exact_at[done] = tri[a]
-        contact = values <= margin
+            bary[a], values[a], grads[a] = self._answer(tri[a], bary[a], status[a], pending.margin, stats)
+            self._answers.store(faces[a], tri[a], bary[a], values[a], grads[a])
+        contact = values <= pending.margin
         bary, values, normals = bary[contact], values[contact], _unit(grads[contact])
-        return self._contacts(sdf_pose, faces[contact], bary, np.einsum("kv,kvc->kc", bary, tri[contact]), values, normals)
+        return self._contacts(pending.sdf_pose, faces[contact], bary, np.einsum("kv,kvc->kc", bary, tri[contact]), values,
+                              normals)
 
-    def _answer(self, tri, bary, status, faces, margin, stats):
+    def _answer(self, tri, bary, status, margin, stats):
         """The SDF's answers on faces (A, 3, 3) from the proxy's minimisers ``bary`` (A, 3) (``status`` (A,) there):
         bary (A, 3), values (A,), gradients (A, 3)."""
         tri_t, bary_t = torch.from_numpy(tri), torch.from_numpy(bary)
@@ -449,6 +442,53 @@ class ProxyCollider:
         return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
                         triangles=torch.from_numpy(np.ascontiguousarray(faces, dtype=np.int64)), bary=as_t(bary),
                         n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+
+
+@dataclass
+class _ProxyContacts:
+    """One call's proxy contacts, for the SDF to answer (:meth:`ProxyCollider.exact_contacts`): ``sdf_pose`` (4, 4),
+    ``faces`` (K,), ``tri`` (K, 3, 3) SDF frame, ``bary`` (K, 3) the proxy's minimisers, ``status`` (K,) the proxy's
+    there, and the call's ``margin``."""
+
+    sdf_pose: np.ndarray
+    faces: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    status: np.ndarray
+    margin: float
+
+
+@dataclass
+class _SDFAnswers:
+    """The SDF's last answer per face (F of them): ``bary`` (F, 3), ``value`` (F,) (NaN: none), ``grad`` (F, 3), and
+    ``at`` (F, 3, 3) the face in the SDF's frame when it was answered."""
+
+    bary: np.ndarray
+    value: np.ndarray
+    grad: np.ndarray
+    at: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> _SDFAnswers:
+        return cls(np.zeros((n, 3)), np.full(n, np.nan), np.zeros((n, 3)), np.zeros((n, 3, 3)))
+
+    def unmoved(self, faces: np.ndarray, tri: np.ndarray, reuse_distance: float) -> np.ndarray:
+        """(K,) bool: the faces ``faces`` (K,), now at ``tri`` (K, 3, 3), have an answer and moved at most
+        ``reuse_distance`` since."""
+        if not len(faces):
+            return np.zeros(0, dtype=bool)
+        moved = np.linalg.norm(tri - self.at[faces], axis=-1).max(axis=-1)
+        return np.isfinite(self.value[faces]) & (moved <= reuse_distance)
+
+    def carried(self, faces: np.ndarray, tri: np.ndarray):
+        """The answers of the faces ``faces`` (K,) now at ``tri`` (K, 3, 3), their values moved to first order along
+        their normals: bary (K, 3), values (K,), gradients (K, 3)."""
+        b, g = self.bary[faces], self.grad[faces]
+        moved = moved_along_normal(*(torch.from_numpy(a) for a in (self.value[faces], _unit(g), tri, self.at[faces], b)))
+        return b, moved.numpy(), g
+
+    def store(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
+        self.bary[faces], self.value[faces], self.grad[faces], self.at[faces] = bary, values, grads, tri
 
 
 class _KernelScratch:
