@@ -19,8 +19,7 @@ is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF
    proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
    reduces them to a manifold first): its value and gradient at the proxy's minimiser; where the SDF's Frank-Wolfe
    gap there exceeds ``POLISH_GAP_FRACTION`` of the margin, one step along the SDF's steepest descent inside the
-   face, its length chosen on the proxy, and, where the proxy puts its end that much lower than its start, the
-   SDF's value and gradient at its end, kept where lower; and
+   face, its length chosen on the proxy, and the SDF's value and gradient at its end, kept where lower; and
    the method from scratch on the SDF where the proxy's minimiser lies out of its band (a penetration deeper than
    the band). A face that moved less than ``reuse_distance`` since the SDF answered it keeps that answer, its
    depth moved to first order along its normal (a persistent contact). Every contact's point, depth and normal
@@ -391,7 +390,7 @@ class ProxyCollider:
         polish = ((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin)).nonzero().squeeze(-1)
         if polish.numel():
             rows = polish.numpy()
-            b, f1, g1 = self._polish(tri[rows], bary_t[polish].numpy(), g[polish].numpy(), dtype, margin, stats)
+            b, f1, g1 = self._polish(tri[rows], bary_t[polish].numpy(), g[polish].numpy(), dtype, stats)
             lower = torch.from_numpy(f1 < f[polish].numpy())
             better = polish[lower]
             bary_t[better], f[better], g[better] = torch.from_numpy(b[lower.numpy()]), torch.from_numpy(f1[lower.numpy()]), \
@@ -412,27 +411,19 @@ class ProxyCollider:
                     f[rows], g[rows] = torch.as_tensor(fr).reshape(-1).double(), torch.as_tensor(gr).reshape(-1, 3).double()
         return bary_t.numpy(), f.numpy(), g.numpy()
 
-    def _polish(self, tri, bary, g, dtype, margin, stats):
+    def _polish(self, tri, bary, g, dtype, stats):
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
         SDF's gradient there), as far as the lowest of ``POLISH_SAMPLES`` points along it on the proxy (one read), and
-        the SDF's value and gradient at that point (one query) where the proxy puts it lower than the start by more than
-        ``POLISH_GAP_FRACTION`` of the margin (the gap bounds the gain on a convex face, but overstates it on a long one):
-        -> bary (P, 3), values (P,) (inf where not asked), gradients (P, 3) there."""
+        the SDF's value and gradient at that point (one query): -> bary (P, 3), values (P,), gradients (P, 3) there."""
         direction, reach = _descent_segment(tri, bary, g)
-        t = np.arange(POLISH_SAMPLES + 1) / POLISH_SAMPLES  # the start, then the samples
-        along = _on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S + 1, 3)
+        t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
+        along = _on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
         values = self._read(np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
-        lowest = values.argmin(axis=1)
-        rows = np.arange(len(tri))
-        end = along[rows, lowest]
-        f, grad = np.full(len(tri), np.inf), np.zeros((len(tri), 3))
-        ask = np.flatnonzero(values[:, 0] - values[rows, lowest] > POLISH_GAP_FRACTION * margin)
-        if ask.size:
-            with torch.no_grad():
-                fa, ga = self.sdf.value_and_grad(torch.from_numpy(np.einsum("pv,pvc->pc", end[ask], tri[ask])).to(dtype))
-            f[ask], grad[ask] = torch.as_tensor(fa).reshape(-1).double().numpy(), torch.as_tensor(ga).reshape(-1, 3).double().numpy()
-            stats.exact_points += int(ask.size)
-        return end, f, grad
+        end = along[np.arange(len(tri)), values.argmin(axis=1)]
+        with torch.no_grad():
+            f, grad = self.sdf.value_and_grad(torch.from_numpy(np.einsum("pv,pvc->pc", end, tri)).to(dtype))
+        stats.exact_points += len(tri)
+        return end, torch.as_tensor(f).reshape(-1).double().numpy(), torch.as_tensor(grad).reshape(-1, 3).double().numpy()
 
     def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> Contacts:
         """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""
