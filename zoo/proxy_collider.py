@@ -26,9 +26,10 @@ is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF
    are the SDF's.
 
 Between full searches. A full search also keeps its answers on the faces within ``L * reuse_distance`` above the
-search margin (a motion of ``reuse_distance`` cannot bring another face within it); while no vertex of the mesh has
-moved more than ``reuse_distance`` relative to the SDF since (a bound from the change of the relative pose and the
-mesh's radius), a call carries those answers, their values moved to first order along their normals, with no read
+search margin (a motion of ``reuse_distance`` cannot bring another face within it); while no point of the mesh that
+can reach the SDF's bounding ball grown by the search margin has moved more than ``reuse_distance`` relative to the
+SDF since (:meth:`ProxyCollider._moved_at_most`: a large mesh's far parts, which move most when the pose turns,
+cannot reach it), a call carries those answers, their values moved to first order along their normals, with no read
 at all (``stats.reused``): a persistent contact manifold, as the SDF's own answers are kept below.
 
 Why clusters and not a carried bound per vertex (what :class:`zoo.CoherentCollider` does on the SDF itself): on
@@ -38,6 +39,7 @@ is the cheaper proof, and it needs no state but the last answers (the search's w
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -105,12 +107,11 @@ class ProxyCollider:
         self._f = faces.cpu().numpy()  # (F, 3)
         corners = self._v[self._f]  # (F, 3, 3)
         self._centroid = corners.mean(axis=1)  # (F, 3)
-        self._middle = (self._v.min(axis=0) + self._v.max(axis=0)) / 2 if len(self._v) else np.zeros(3)
-        self._extent = float(np.linalg.norm(self._v - self._middle, axis=1).max()) if len(self._v) else 0.0
         self._reach, self._ball = (t.numpy() for t in triangle_reach(torch.from_numpy(corners)))  # (F, 3), (F,)
         self._clusters, self._cluster_centre, self._cluster_radius = _clusters(corners, self._centroid)
         lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64).cpu()).reshape(3) for b in proxy.bounds)
         self._lo, self._hi = lo, hi
+        self._sdf_centre, self._sdf_radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2  # its bounding ball
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()
         if kernel == "numba":  # compiled (or loaded from numba's cache) now, not in the first step
@@ -141,7 +142,7 @@ class ProxyCollider:
         rotation, shift = relative[:3, :3], relative[:3, 3]
         search = margin + self.proxy.error_bound
         held = self._held
-        if held is not None and held.search == search and self._moved_at_most(held.relative, relative) <= self.reuse_distance:
+        if held is not None and held.search == search and self._moved_at_most(held.relative, relative, search) <= self.reuse_distance:
             t1 = time.perf_counter()
             faces, tri, bary, values, grads, status = held.carried(self._v[self._f[held.faces]] @ rotation.T + shift)
             stats.reused = len(held.faces)
@@ -181,11 +182,21 @@ class ProxyCollider:
         self.stats.add(stats)
         return contacts
 
-    def _moved_at_most(self, then: np.ndarray, now: np.ndarray) -> float:
-        """A bound (m) of how far any mesh vertex moved relative to the SDF between the relative poses ``then`` and ``now``
-        (4x4 SDF-from-mesh): the rotation's change times the mesh's radius about its centre, plus the centre's move."""
+    def _moved_at_most(self, then: np.ndarray, now: np.ndarray, search: float) -> float:
+        """A bound (m) of how far a mesh point that can now lie within ``search`` of the SDF's bounding ball (centre s,
+        radius R, SDF frame) moved relative to the SDF between the relative poses ``then`` and ``now`` (4x4 SDF-from-mesh).
+
+        A point p of the mesh at distance D from s then moved by (A - A') p + b - b' <= a D + c, with a = ||A - A'||_F
+        and c = |(A - A') m + b - b'| for m the mesh point at s then; it is now within R + search of s only if
+        D - a D - c <= R + search, so D <= D0 = (R + search + c) / (1 - a), and it moved at most a D0 + c (infinite for
+        a >= 1). Points farther cannot come near the SDF (no contact lies outside its bounds grown by the margin)."""
         turn = now[:3, :3] - then[:3, :3]
-        return float(np.linalg.norm(turn) * self._extent + np.linalg.norm(turn @ self._middle + now[:3, 3] - then[:3, 3]))
+        a = float(np.linalg.norm(turn))
+        if a >= 1:
+            return math.inf
+        at_centre = then[:3, :3].T @ (self._sdf_centre - then[:3, 3])  # m: the mesh point at s then (mesh frame)
+        c = float(np.linalg.norm(turn @ at_centre + now[:3, 3] - then[:3, 3]))
+        return a * (self._sdf_radius + search + c) / (1 - a) + c
 
     # -- the compiled passes (zoo.proxy_kernel) --------------------------------------------------------------------
 
