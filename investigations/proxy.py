@@ -17,6 +17,11 @@ and the write of what was baked (``flush``).
 proxy at 10 and 500 points: near the surface (all in band) and uniform in the mug's bounds (most out of band),
 float32 and float64; the bricks those points need are baked before the timing.
 
+``--kernels SCENARIO``: the proxy collider's compiled passes (``kernel="numba"``, the default) and its numpy ones side
+by side on the poses of the scenario's default run: milliseconds a call, whether their contacts agree, and how long
+making each collider took (the compiled one loads its kernel then). ``--network``: what a NeuralSDF's value and
+gradient costs a call at 1 to 1,000 points, on the path ``value_and_grad`` takes and on torch's by-hand path.
+
 ``--sim``: each scenario of benches/sim_scenarios.py named (its scene, control and check) run three ways in one process,
 stepping in turn so that the machine's load falls on all alike: the full path (amortized, no coherence), the coherent
 collider on the NeuralSDF itself (``proxy=False``, the default before the proxy) and the default, on the proxy
@@ -32,6 +37,7 @@ path's (and along the bolt, for bolt-nut), the scenario's check, and the collide
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import numpy as np
@@ -249,6 +255,64 @@ def simulate(scenario: str, steps: int | None, ways: list[str] | None = None, re
     return out
 
 
+def kernels(scenario: str, steps: int | None) -> dict:
+    """``scenario`` simulated on its default path; at every step two more proxy colliders on the same SDF, mesh and
+    proxy, one per kernel (``ProxyCollider(kernel=...)``: compiled, numpy), answer the step's poses (deferred: the
+    proxy's contacts) in turn: their milliseconds a call (median, mean), whether their contacts agree (faces, and
+    depths within 1e-9 m), and how long making each collider took (the compiled one loads its kernel then)."""
+    from sdfzoo.benches.sim_scenarios import advance, start
+    from zoo.proxy_collider import KERNELS, ProxyCollider
+    from zoo.sim.world import body_pose
+
+    spec, sim, extra = start(scenario)
+    pair = next(p for p in sim.world.pairs if getattr(p.collider, "proxy", None) is not None)
+    source = pair.collider.proxy_collider
+    made = {}
+    for kernel in KERNELS:
+        started = time.perf_counter()
+        made[kernel] = ProxyCollider(source.sdf, (source.vertices, source.faces), source.proxy, source.margin,
+                                     source.method, deferred=True, kernel=kernel)
+        made[kernel + "_made_s"] = time.perf_counter() - started
+    times = {kernel: [] for kernel in KERNELS}
+    disagree = 0
+    steps = int(round(sim.seconds / sim.dt)) if steps is None else steps
+    for _ in range(steps):
+        advance(spec, sim, extra)
+        poses = body_pose(sim.data, pair.sdf_body.body), pair.surface_pose(sim.data)
+        answers = {}
+        for kernel in KERNELS:
+            started = time.perf_counter()
+            answers[kernel] = made[kernel](*poses)
+            times[kernel].append(time.perf_counter() - started)
+        a, b = answers.values()
+        same = a.triangles.tolist() == b.triangles.tolist() and (not len(a) or float((a.depths.double() - b.depths.double()).abs().max()) <= 1e-9)
+        disagree += not same
+    return {"scenario": scenario, "steps": steps, "mesh_faces": int(source.faces.shape[0]), "steps_disagreeing": disagree,
+            "made_s": {k: made[k + "_made_s"] for k in KERNELS},
+            "call_ms": {k: {"median": 1e3 * float(np.median(t[1:])), "mean": 1e3 * float(np.mean(t[1:]))} for k, t in times.items()}}
+
+
+def network_costs(repeats: int = 200) -> dict:
+    """A NeuralSDF's value and gradient (``value_and_grad``) at 1, 3, 10, 64 and 1,000 points: microseconds a call on the
+    path it takes (numpy up to ``SMALL_BATCH`` points, torch's chain rule by hand above), and on torch's by-hand path
+    at the same points, float32, the mugs' hoi4d_mug_0001 and the bolts' factory_bolt_m16."""
+    import zoo
+    from zoo.neural_numpy import SMALL_BATCH
+
+    out = {"small_batch": SMALL_BATCH}
+    for model, shape_name, _ in SHAPES[:2]:
+        shape = zoo.load(model).shape(shape_name)
+        lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in shape.bounds)
+        rows = {}
+        for n in (1, 3, 10, 64, 1000):
+            points = lo + torch.rand(n, 3, generator=torch.Generator().manual_seed(n)) * (hi - lo)
+            taken = per_call_us(shape.value_and_grad, points, repeats) * n
+            by_hand = per_call_us(functools.partial(shape._value_and_grad_by_hand, n=1 << 20), points, repeats) * n
+            rows[str(n)] = {"taken_us": taken, "torch_by_hand_us": by_hand, "taken_us_a_point": taken / n}
+        out[shape_name] = rows
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bake", action="store_true", help="bake each shape afresh and measure it")
@@ -261,6 +325,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="with --sim: only these ways (default all; the first named is the reference of the end poses)")
     parser.add_argument("--refine", type=int, action="append", default=[],
                         help="with --sim: subdivide the fixed meshes this many times (4x faces each; repeatable: one run each)")
+    parser.add_argument("--kernels", action="append", default=[],
+                        help="a scenario: the proxy collider's compiled and numpy kernels on its poses, side by side")
+    parser.add_argument("--network", action="store_true", help="what a NeuralSDF's value and gradient costs a call")
     parser.add_argument("--out", default="out/proxy.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -293,6 +360,18 @@ def main(argv: list[str] | None = None) -> None:
         print(f"reads ({report['reads']['function']}): " + "; ".join(
             f"{kind}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items() if k.endswith("_us"))
             for kind, row in report["reads"].items() if kind != "function"), flush=True)
+    if args.kernels:
+        report["kernels"] = []
+        for scenario in args.kernels:
+            row = kernels(scenario, args.steps)
+            report["kernels"].append(row)
+            print(f"{scenario} kernels: " + ", ".join(f"{k} {v['median']:.2f} ms a call median ({v['mean']:.2f} mean), made in "
+                  f"{row['made_s'][k]:.2f} s" for k, v in row["call_ms"].items()) + f"; {row['steps_disagreeing']} of "
+                  f"{row['steps']} steps disagree", flush=True)
+    if args.network:
+        report["network"] = network_costs()
+        print("network: " + "; ".join(f"{shape}: " + ", ".join(f"{n} points {r['taken_us']:.0f} us ({r['torch_by_hand_us']:.0f} "
+              "torch)" for n, r in rows.items()) for shape, rows in report["network"].items() if shape != "small_batch"), flush=True)
     if args.sim:
         from sdfzoo.benches.sim_scenarios import require_meshes
 

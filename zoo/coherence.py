@@ -437,6 +437,11 @@ class CoherentCollider:
         if self._on_proxy is not None:
             self._on_proxy.reset()
 
+    @property
+    def proxy_collider(self):
+        """The :class:`zoo.proxy_collider.ProxyCollider` this collider runs on, or None without a proxy."""
+        return self._on_proxy
+
     def _proxy_collider(self, proxy, deferred: bool):
         """The :class:`zoo.proxy_collider.ProxyCollider` this collider runs on (see the class's ``proxy`` argument), or
         None without a proxy."""
