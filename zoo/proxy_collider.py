@@ -101,6 +101,7 @@ class ProxyCollider:
             raise InputError(f"kernel= takes one of {', '.join(KERNELS)}, got {kernel!r}")
         self.kernel = kernel
         self.reported_method = f"proxy+{method}"
+        self._dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32  # the SDF's queries
         vertices, faces = mesh_tensors(mesh)
         self.vertices, self.faces = vertices, faces  # torch, for the fallback and the caller
         self._v = vertices.detach().cpu().numpy().astype(np.float64)  # (V, 3) mesh frame
@@ -390,39 +391,30 @@ class ProxyCollider:
     def _answer(self, tri, bary, status, margin, stats):
         """The SDF's answers on faces (A, 3, 3) from the proxy's minimisers ``bary`` (A, 3) (``status`` (A,) there):
         bary (A, 3), values (A,), gradients (A, 3)."""
-        tri_t, bary_t = torch.from_numpy(tri), torch.from_numpy(bary)
-        dtype = torch.float64 if getattr(self.sdf, "dtype", None) == torch.float64 else torch.float32
-        points = torch.einsum("av,avc->ac", bary_t, tri_t)
-        with torch.no_grad():
-            f, g = self.sdf.value_and_grad(points.to(dtype))
-        f, g = torch.as_tensor(f).reshape(-1).double(), torch.as_tensor(g).reshape(-1, 3).double()
-        stats.exact_points += int(points.shape[0])
-        gap = torch.from_numpy(_frank_wolfe_gap(tri, bary, g.numpy()))
-        polish = ((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin)).nonzero().squeeze(-1)
-        if polish.numel():
-            rows = polish.numpy()
-            b, f1, g1 = self._polish(tri[rows], bary_t[polish].numpy(), g[polish].numpy(), dtype, stats)
-            lower = torch.from_numpy(f1 < f[polish].numpy())
-            better = polish[lower]
-            bary_t[better], f[better], g[better] = torch.from_numpy(b[lower.numpy()]), torch.from_numpy(f1[lower.numpy()]), \
-                torch.from_numpy(g1[lower.numpy()])
+        bary = bary.copy()
+        f, g = self._sdf_at(np.einsum("av,avc->ac", bary, tri), stats)
+        gap = _frank_wolfe_gap(tri, bary, g)
+        polish = np.flatnonzero((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin))
+        if polish.size:
+            b, f1, g1 = self._polish(tri[polish], bary[polish], g[polish], stats)
+            lower = f1 < f[polish]
+            rows = polish[lower]
+            bary[rows], f[rows], g[rows] = b[lower], f1[lower], g1[lower]
         out = np.flatnonzero(status != IN_BAND)
         if out.size:  # deeper than the band: the method from scratch on the SDF
             stats.fallback += int(out.size)
-            local = torch.from_numpy(tri[out].reshape(-1, 3)).to(dtype)
-            unknown = torch.full(local.shape[:1], torch.nan, dtype=dtype)
+            local = torch.from_numpy(tri[out].reshape(-1, 3)).to(self._dtype)
+            unknown = torch.full(local.shape[:1], torch.nan, dtype=self._dtype)
             with torch.no_grad():
                 b_cold, f_cold = solve_candidates(self.sdf, self.sdf, local, torch.arange(local.shape[0]).reshape(-1, 3),
                                                   unknown, margin, self.method, self.iters, self.polish)
-                lower = (f_cold.double() < f[out]).nonzero().squeeze(-1)
-                if lower.numel():
-                    rows = torch.from_numpy(out)[lower]
-                    bary_t[rows] = b_cold[lower].double()
-                    fr, gr = self.sdf.value_and_grad(torch.einsum("av,avc->ac", bary_t[rows], tri_t[rows]).to(dtype))
-                    f[rows], g[rows] = torch.as_tensor(fr).reshape(-1).double(), torch.as_tensor(gr).reshape(-1, 3).double()
-        return bary_t.numpy(), f.numpy(), g.numpy()
+            rows = out[f_cold.double().numpy() < f[out]]
+            if rows.size:
+                bary[rows] = b_cold.double().numpy()[f_cold.double().numpy() < f[out]]
+                f[rows], g[rows] = self._sdf_at(np.einsum("av,avc->ac", bary[rows], tri[rows]), stats)
+        return bary, f, g
 
-    def _polish(self, tri, bary, g, dtype, stats):
+    def _polish(self, tri, bary, g, stats):
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
         SDF's gradient there), as far as the lowest of ``POLISH_SAMPLES`` points along it on the proxy (one read), and
         the SDF's value and gradient at that point (one query): -> bary (P, 3), values (P,), gradients (P, 3) there."""
@@ -431,10 +423,14 @@ class ProxyCollider:
         along = _on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
         values = self._read(np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
         end = along[np.arange(len(tri)), values.argmin(axis=1)]
+        return (end, *self._sdf_at(np.einsum("pv,pvc->pc", end, tri), stats))
+
+    def _sdf_at(self, points: np.ndarray, stats: CoherenceStats) -> tuple[np.ndarray, np.ndarray]:
+        """The SDF's values (N,) and gradients (N, 3), float64, at ``points`` (N, 3) in its frame, in one query."""
+        stats.exact_points += len(points)
         with torch.no_grad():
-            f, grad = self.sdf.value_and_grad(torch.from_numpy(np.einsum("pv,pvc->pc", end, tri)).to(dtype))
-        stats.exact_points += len(tri)
-        return end, torch.as_tensor(f).reshape(-1).double().numpy(), torch.as_tensor(grad).reshape(-1, 3).double().numpy()
+            f, g = self.sdf.value_and_grad(torch.from_numpy(points).to(self._dtype))
+        return torch.as_tensor(f).reshape(-1).double().numpy(), torch.as_tensor(g).reshape(-1, 3).double().numpy()
 
     def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> Contacts:
         """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""
