@@ -327,6 +327,15 @@ class VertexBounds:
         return cls(torch.zeros_like(v), torch.full(v.shape[:1], -torch.inf, dtype=v.dtype, device=v.device),
                    torch.zeros(v.shape[:1], dtype=torch.bool, device=v.device))
 
+    def known_at(self, vertices: torch.Tensor, here: torch.Tensor) -> torch.Tensor:
+        """(K,) bool: f is known exactly at the vertices ``vertices`` (K,) (or ``slice(None)``: all) where they are now,
+        ``here`` (K, 3)."""
+        return self.exact[vertices] & (self.anchor[vertices] == here).all(dim=-1)
+
+    def hold(self, vertices: torch.Tensor, here: torch.Tensor, lower: torch.Tensor, exact: bool) -> None:
+        """The vertices ``vertices`` (K,) now hold the bound ``lower`` (K,) at ``here`` (K, 3) (f itself: ``exact``)."""
+        self.anchor[vertices], self.lower[vertices], self.exact[vertices] = here, lower, exact
+
 
 @dataclass
 class FaceAnswers:
@@ -553,14 +562,14 @@ class CoherentCollider:
             bound = cell_bounds(counted, local[used[stale]])
             stats.cell_queries = counted.queries
             lower[stale] = torch.maximum(lower[stale], bound)
-            self._anchor_at(used[stale], local, lower[stale], exact=False)
+            self._vertex.hold(used[stale], local[used[stale]], lower[stale], exact=False)
             open_ &= cell_lower_bounds(tri, lower[corner]) <= margin
             stale = self._stale(used, corner, open_, local)
         if stale.numel():
             with torch.no_grad():
                 lower[stale] = torch.as_tensor(self.sdf(local[used[stale]])).reshape(-1).to(lower)
             stats.vertex_queries = int(stale.numel())
-            self._anchor_at(used[stale], local, lower[stale], exact=True)
+            self._vertex.hold(used[stale], local[used[stale]], lower[stale], exact=True)
         # every face from the best bounds known (a face an earlier bound cleared whose vertices were all evaluated
         # is tested again on their values, as collide does: the same faces for a 1-Lipschitz SDF, and for a
         # learned one, where a cell bound can exceed a vertex's value, the same as collide's as far as can be)
@@ -572,17 +581,17 @@ class CoherentCollider:
         kind = torch.cat([torch.full_like(cold, COLD), torch.full_like(warm, WARM), torch.full_like(kept, KEPT)])[order]
         stats.candidates, stats.reused = int(candidates.numel()), int(kept.numel())
         stats.faces_skipped -= int(kept.numel() + warm.numel())
-        fresh = self._vertex.exact & (self._vertex.anchor == local).all(dim=-1)
+        fresh = self._vertex.known_at(slice(None), local)
         return candidates, kind, torch.where(fresh, self._vertex.lower, torch.full_like(self._vertex.lower, torch.nan))
 
     def _evaluate_vertices(self, local: torch.Tensor, faces: torch.Tensor) -> int:
         """Evaluate f at the vertices of ``faces`` (N,) not yet evaluated where they are now; returns how many."""
         v = torch.unique(self.faces[faces])
-        v = v[~(self._vertex.exact[v] & (self._vertex.anchor[v] == local[v]).all(dim=-1))]
+        v = v[~self._vertex.known_at(v, local[v])]
         if v.numel():
             with torch.no_grad():
                 values = torch.as_tensor(self.sdf(local[v])).reshape(-1).to(self._vertex.lower)
-            self._anchor_at(v, local, values, exact=True)
+            self._vertex.hold(v, local[v], values, exact=True)
         return int(v.numel())
 
     def _still_clear(self, faces: torch.Tensor, margin: float) -> torch.Tensor:
@@ -646,21 +655,14 @@ class CoherentCollider:
         moved = (here - anchor).norm(dim=-1)
         size = torch.maximum(here.abs().amax(dim=-1), anchor.abs().amax(dim=-1))
         carried = bound - self.lipschitz * moved - rounding_slack(bound.abs(), moved, size)
-        unmoved = self._vertex.exact[used] & (here == anchor).all(dim=-1)
+        unmoved = self._vertex.known_at(used, here)
         return torch.where(unmoved, bound, carried)
 
     def _stale(self, used: torch.Tensor, corner: torch.Tensor, open_: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
         """Rows of ``used`` (the open faces' vertices) whose f is not known exactly at their present position."""
         rows = torch.unique(corner[open_])
         v = used[rows]
-        known = self._vertex.exact[v] & (self._vertex.anchor[v] == local[v]).all(dim=-1)
-        return rows[~known]
-
-    def _anchor_at(self, vertices: torch.Tensor, local: torch.Tensor, lower: torch.Tensor, exact: bool) -> None:
-        """Vertices ``vertices`` (K,) now hold the bound ``lower`` (K,) at their present position."""
-        self._vertex.anchor[vertices] = local[vertices]
-        self._vertex.lower[vertices] = lower
-        self._vertex.exact[vertices] = exact
+        return rows[~self._vertex.known_at(v, local[v])]
 
     # -- narrow phase ---------------------------------------------------------------------------
 

@@ -1,14 +1,16 @@
 """One SDF-mesh pair collided step after step on the SDF's baked proxy: queries that scale with the contacts kept.
 
-:class:`ProxyCollider` is what ``zoo.CoherentCollider(proxy=...)`` and a simulation's mesh pairs run. Every step
-is a fixed handful of vectorised numpy passes over the mesh's faces near the SDF, each with one proxy read
-(:meth:`zoo.proxy.ProxySDF.read_numpy`, a fraction of a microsecond a point), and no Python loop over faces:
+:class:`ProxyCollider` is what ``zoo.CoherentCollider(proxy=...)`` and a simulation's mesh pairs run. Steps 1 to 3 of a call run as one
+compiled loop over the mesh's faces near the SDF (:mod:`zoo.proxy_kernel`, the default ``kernel="numba"``), or as a
+fixed handful of vectorised numpy passes, each with one proxy read (:meth:`zoo.proxy.ProxySDF.read_numpy`) for all
+the faces (``kernel="numpy"``, the reference the compiled loop is tested against); neither loops over faces in Python:
 
 1. **Clusters.** The faces are sorted along a Morton curve once and cut into clusters of ``CLUSTER`` faces, each
    with a bounding ball. A cluster whose ball lies beyond the SDF's bounds grown by the search margin, or whose
    proxy value at its centre, less L times its radius, exceeds the search margin, holds no contact (L: the
    proxy's Lipschitz bound; f >= proxy - error_bound in band, and the proxy is a lower bound of f out of band).
-2. **Faces.** The same test on each face of the clusters kept, at its centroid and with its own ball.
+2. **Faces.** The proxy at the vertices of the clusters' faces, and each face's Lipschitz lower bound from its
+   three values (:func:`zoo.bounds.triangle_reach`): a face it puts above the search margin holds no contact.
 3. **Search.** A face whose lowest vertex is a KKT point on the proxy (its Frank-Wolfe gap below ``CONVERGED_GAP``
    of the margin) has that vertex as its answer; one the screen (:func:`zoo.coherence.screen_bound`'s bound) puts
    above the search margin is dropped. The others start from their last answer (a warm start) or, new, from the
@@ -375,11 +377,12 @@ class ProxyCollider:
         n = len(faces)
         stats.exact_faces += n
         values, grads = np.zeros(n), np.zeros((n, 3))
-        k = np.flatnonzero(self._answers.unmoved(faces, tri, self.reuse_distance))
+        kept = self._answers.unmoved(faces, tri, self.reuse_distance)
+        k = np.flatnonzero(kept)
         if k.size:  # a persistent contact: its depth moved to first order along its normal
             bary[k], values[k], grads[k] = self._answers.carried(faces[k], tri[k])
             stats.exact_kept += int(k.size)
-        a = np.setdiff1d(np.arange(n), k, assume_unique=True)
+        a = np.flatnonzero(~kept)
         if a.size:
             bary[a], values[a], grads[a] = self._answer(tri[a], bary[a], status[a], pending.margin, stats)
             self._answers.store(faces[a], tri[a], bary[a], values[a], grads[a])
@@ -408,9 +411,10 @@ class ProxyCollider:
             with torch.no_grad():
                 b_cold, f_cold = solve_candidates(self.sdf, self.sdf, local, torch.arange(local.shape[0]).reshape(-1, 3),
                                                   unknown, margin, self.method, self.iters, self.polish)
-            rows = out[f_cold.double().numpy() < f[out]]
+            lower = f_cold.double().numpy() < f[out]
+            rows = out[lower]
             if rows.size:
-                bary[rows] = b_cold.double().numpy()[f_cold.double().numpy() < f[out]]
+                bary[rows] = b_cold.double().numpy()[lower]
                 f[rows], g[rows] = self._sdf_at(np.einsum("av,avc->ac", bary[rows], tri[rows]), stats)
         return bary, f, g
 
@@ -493,12 +497,12 @@ class _KernelScratch:
     """The buffers :func:`zoo.proxy_kernel.search_faces` writes into, sized for the mesh (V vertices, F faces) once."""
 
     def __init__(self, n_vertices: int, n_faces: int):
+        from .proxy_kernel import N_COUNTS
+
         self.stamp = 0
         self.vertex_stamp = np.zeros(n_vertices, dtype=np.int64)
         self.vertex_local, self.vertex_answer = np.zeros((n_vertices, 3)), np.zeros((n_vertices, 5))
-        self.missing = np.zeros(4096, dtype=np.int64)
-        from .proxy_kernel import N_COUNTS
-
+        self.missing = np.zeros(4096, dtype=np.int64)  # bricks not ready that one call can report
         self.counts = np.zeros(N_COUNTS, dtype=np.int64)
         self.face, self.tri, self.bary = np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3, 3)), np.zeros((n_faces, 3))
         self.value, self.grad, self.status = np.zeros(n_faces), np.zeros((n_faces, 3)), np.zeros(n_faces, dtype=np.int8)
