@@ -30,8 +30,10 @@ Reading (:meth:`ProxySDF.read`, :meth:`ProxySDF.read_numpy`), for points (N, 3) 
   (and at least ``band`` where the dropped block was outside), with the coarse gradient (central differences
   of the brick-centre values) for a search to follow; status 1 (``ABOVE``: the bound is above ``band``,
   no contact within the band there) or -1 (``UNKNOWN``: deep inside, the proxy knows nothing but that);
-* outside the baked region (the SDF's bounds grown by the band and a cell): ``band`` plus the distance to
-  the region, pointing away from it (status ``ABOVE``; the surface lies in the bounds, as collide assumes).
+* outside the baked region (the SDF's bounds grown by the band and a cell): the larger of ``band`` plus the
+  distance to the region (the surface lies in the bounds, as collide assumes) and the nearest brick's bound
+  f(c) - L |p - c| (a box's corners can lie far from a round shape), pointing away from the region (status
+  ``ABOVE``).
 
 Error. The proxy's error against the SDF is measured on held-out points (uniform in random baked cells,
 none of them a node) and kept with it (``proxy.error``: median, p99, max, in the SDF's units); the bound
@@ -325,10 +327,14 @@ class ProxySDF:
                 self._status_np, self._coarse_value_np, self._coarse_grad_np, self._nb, self._brick_side,
                 self._first_centre_np)
 
-    def make_ready(self, bricks) -> int:
+    def make_ready(self, bricks, coarse=()) -> int:
         """Make the bricks ``bricks`` (K,) (flat indices) ready where they are not yet (a lazy proxy), as a read landing
-        in them would; returns the bricks baked. A compiled read (:func:`zoo.proxy_kernel.read`) reports the bricks
-        it met not ready, for its caller to make ready here."""
+        in them would, and give the bricks ``coarse`` (J,) their coarse values (what a read outside the region next to
+        them needs); returns the bricks baked. A compiled read (:func:`zoo.proxy_kernel.read`) reports both, for its
+        caller to make ready here."""
+        coarse = np.unique(np.asarray(coarse, dtype=np.int64))
+        if coarse.size:
+            self._complete_coarse(coarse)
         bricks = np.unique(np.asarray(bricks, dtype=np.int64))
         return self._make_ready(bricks[self._brick_of_np[bricks] == NOT_READY])
 
@@ -356,10 +362,10 @@ class ProxySDF:
         np.maximum(bound, k.band, out=bound, where=status == ABOVE)
         values = np.where(out, bound, values)
         grads = np.where(out[:, None], self._coarse_grad_np[brick_flat], grads)
-        if inside is not None:  # outside the region: band plus the distance to it, pointing away
+        if inside is not None:  # outside the region: also at least the band plus the distance to it; pointing away
             away = p - np.clip(p, k.lo, k.hi)
             gap = np.sqrt((away * away).sum(axis=1))
-            values = np.where(inside, values, k.band + gap)
+            values = np.where(inside, values, np.maximum(bound, k.band + gap))
             grads = np.where(inside[:, None], grads, away / np.maximum(gap, k.tiny)[:, None])
         # out of band: ABOVE where the value (a lower bound) is at least the band, else UNKNOWN
         status = np.where(values >= k.band, np.int8(ABOVE), np.int8(UNKNOWN))
@@ -384,15 +390,18 @@ class ProxySDF:
 
     def _rows_made_ready(self, brick_flat: np.ndarray, row: np.ndarray, inside: np.ndarray | None) -> np.ndarray:
         """The rows (N,) of the bricks ``brick_flat`` (N,) after making ready those not yet (``row`` (N,) < 0) that hold
-        points in the region (``inside`` (N,) bool, or None: all); a point outside gets row 0 (its answer is the
-        region's, not its brick's)."""
+        points in the region (``inside`` (N,) bool, or None: all); a point outside gets row 0, and its brick (the
+        nearest) its coarse value, which bounds the SDF there too."""
         waiting = row < 0
         if inside is not None:
+            outside = waiting & ~inside
+            if outside.any():
+                self._complete_coarse(np.unique(brick_flat[outside]))
             waiting &= inside
         if waiting.any():
             self._make_ready(np.unique(brick_flat[waiting]))
         row = self._brick_of_np[brick_flat]
-        return row if inside is None else np.maximum(row, 0)
+        return row if inside is None else np.where(inside, row, 0)
 
     def _make_ready(self, bricks: np.ndarray, coarse_to_fine: bool | None = None, advance=None) -> int:
         """Make the ``NOT_READY`` bricks ``bricks`` (K,) (flat indices) ready: their coarse values and gradients, then
@@ -400,9 +409,6 @@ class ProxySDF:
         bricks baked. ``advance``: called with the points of each SDF call (a progress bar)."""
         if not bricks.size:
             return 0
-        if self.sdf is None:
-            raise InputError("this lazily baked proxy was loaded without its SDF, so it cannot bake the bricks a read "
-                             "needs: load it with load_proxy(folder, key, sdf=...) or cached_proxy(sdf, ...)")
         started = time.perf_counter()
         self._complete_coarse(bricks, advance)
         near = self._may_hold_band(bricks)
@@ -426,6 +432,9 @@ class ProxySDF:
         need = bricks[np.isnan(self._coarse_grad_np[bricks, 0])]
         if not need.size:
             return
+        if self.sdf is None:
+            raise InputError("this lazily baked proxy was loaded without its SDF, so it cannot bake the bricks a read "
+                             "needs: load it with load_proxy(folder, key, sdf=...) or cached_proxy(sdf, ...)")
         nb = self._nb
         ijk = self._unravel(need)
         around = (ijk[:, None] + _AROUND).reshape(-1, 3)

@@ -225,7 +225,8 @@ class ProxyCollider:
             missed = int(k.counts[kernel.N_MISSING])
             if not missed:
                 break
-            self.proxy.make_ready(k.missing[:min(missed, k.missing.size)])  # then the reads there answer
+            missing = k.missing[:min(missed, k.missing.size)]  # then the reads there answer
+            self.proxy.make_ready(missing[missing >= 0], coarse=-1 - missing[missing < 0])
         c = k.counts
         stats.faces_near, stats.faces_skipped = int(c[kernel.FACES_NEAR]), int(c[kernel.FACES_SKIPPED])
         stats.candidates, stats.warm, stats.cold = int(c[kernel.CANDIDATES]), int(c[kernel.WARM]), int(c[kernel.COLD])

@@ -39,7 +39,8 @@ N_COUNTS = 10
 @njit(cache=True, error_model="numpy", inline="always")
 def read(px, py, pz, grid, missing, counts):
     """The proxy at one point (SDF frame): (value, gx, gy, gz, status), as ``ProxySDF.read_numpy`` gives it; status
-    ``MISSING`` (the rest NaN) where the point's brick is not ready, its flat index then added to ``missing``."""
+    ``MISSING`` (the rest NaN) where the point's brick is not ready, its flat index b then added to ``missing`` (-1 - b
+    for a point outside the region: its nearest brick's coarse value alone is needed)."""
     lo, hi, inv_h, band, lip, brick_of, nodes, status, coarse_value, coarse_grad, n_bricks, brick_side, first_centre = grid
     counts[READS] += 1
     ux, uy, uz = (px - lo[0]) * inv_h, (py - lo[1]) * inv_h, (pz - lo[2]) * inv_h
@@ -56,10 +57,10 @@ def read(px, py, pz, grid, missing, counts):
     flat = (bx * n_bricks[1] + by) * n_bricks[2] + bz
     row = brick_of[flat]
     if row < 0:
-        if inside:
+        if inside or math.isnan(coarse_value[flat]):  # outside the region, the nearest brick's coarse value is needed
             n = counts[N_MISSING]
             if n < missing.size:
-                missing[n] = flat
+                missing[n] = flat if inside else -1 - flat
             counts[N_MISSING] = n + 1
             return math.nan, math.nan, math.nan, math.nan, MISSING
         row = 0
@@ -76,20 +77,21 @@ def read(px, py, pz, grid, missing, counts):
         dy0, dy1 = e01 - e00, e11 - e10
         return (a0 + (a1 - a0) * tx, (a1 - a0) * inv_h, (dy0 + (dy1 - dy0) * tx) * inv_h,
                 (dz0 + (dz1 - dz0) * tx) * inv_h, IN_BAND)
-    if inside:  # out of band: the brick centre's bound f(c) - L |p - c| (at least the band in an ABOVE cell)
-        ax = px - (bx * brick_side + first_centre[0])
-        ay = py - (by * brick_side + first_centre[1])
-        az = pz - (bz * brick_side + first_centre[2])
-        value = float(coarse_value[flat]) - lip * math.sqrt(ax * ax + ay * ay + az * az)
+    # out of band: the brick centre's bound f(c) - L |p - c| (at least the band in an ABOVE cell)
+    ax = px - (bx * brick_side + first_centre[0])
+    ay = py - (by * brick_side + first_centre[1])
+    az = pz - (bz * brick_side + first_centre[2])
+    value = float(coarse_value[flat]) - lip * math.sqrt(ax * ax + ay * ay + az * az)
+    if inside:
         if cell_status == ABOVE:
             value = max(value, band)
         gx, gy, gz = float(coarse_grad[flat, 0]), float(coarse_grad[flat, 1]), float(coarse_grad[flat, 2])
-    else:  # outside the region: the band plus the distance to it, pointing away
+    else:  # outside the region: also at least the band plus the distance to it; pointing away from it
         ax = px - min(max(px, lo[0]), hi[0])
         ay = py - min(max(py, lo[1]), hi[1])
         az = pz - min(max(pz, lo[2]), hi[2])
         gap = math.sqrt(ax * ax + ay * ay + az * az)
-        value = band + gap
+        value = max(value, band + gap)
         scale = 1.0 / max(gap, TINY)
         gx, gy, gz = ax * scale, ay * scale, az * scale
     return value, gx, gy, gz, (ABOVE if value >= band else UNKNOWN)
