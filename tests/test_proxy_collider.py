@@ -127,7 +127,8 @@ def test_compiled_passes_answer_as_the_numpy_passes():
     vertices = np.asarray(vertices) * np.array([1.0, 0.3, 1.0])  # long thin faces
     mesh = (vertices, faces)
     colliders = {kernel: ProxyCollider(sphere, mesh, bake_proxy(sphere, margin=1e-3, spacing=1e-3, lazy=True), margin=1e-3,
-                                       method="fw", deferred=True, reuse_distance=0.0, kernel=kernel) for kernel in KERNELS}
+                                       method="fw", deferred=True, reuse_distance=0.0, kernel=kernel, hold=False)
+                 for kernel in KERNELS}
     compared = 0
     for step in range(8):
         sdf_pose = pose(rotation((0.3, 0.2, 1), 0.03 * step), (4e-4 * step, -2e-4 * step, 0.0502 - 2e-4 * step))
@@ -141,6 +142,31 @@ def test_compiled_passes_answer_as_the_numpy_passes():
             assert getattr(sa, count) == getattr(sb, count), count
         compared += len(a)
     assert compared > 50 and colliders["numba"].stats.warm > 0 and colliders["numba"].proxy.lazy_bricks > 0
+
+
+def test_held_faces_are_those_that_hold_no_contact():
+    """Passing over the faces held above the margin (hold=True) against answering every face near the SDF: a sphere
+    rolling, turning and sinking over a plane of long thin faces, some steps standing still and one jumping back,
+    gives the same contacts (faces, depths, points) at every step, with fewer faces screened and searched, and fewer
+    reads."""
+    sphere = zoo.Sphere(0.05)
+    vertices, faces = plane_mesh(max_edge=0.004)
+    mesh = (np.asarray(vertices) * np.array([1.0, 0.3, 1.0]), faces)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3)
+    colliders = {hold: ProxyCollider(sphere, mesh, proxy, margin=1e-3, method="fw", reuse_distance=0.0, hold=hold)
+                 for hold in (False, True)}
+    steps = [0, 1, 2, 2, 3, 4, 5, 5, 5, 6, 7, 8, 1, 9, 10, 11, 12]  # standing still, and back to step 1
+    compared = 0
+    for step in steps:
+        sdf_pose = pose(rotation((0.3, 0.2, 1), 0.002 * step), (2e-4 * step, -1e-4 * step, 0.0503 - 1e-4 * step))
+        a, b = (colliders[hold](sdf_pose, None) for hold in (False, True))
+        assert a.triangles.tolist() == b.triangles.tolist()
+        torch.testing.assert_close(a.depths.double(), b.depths.double(), rtol=0, atol=1e-9)
+        torch.testing.assert_close(a.points.double(), b.points.double(), rtol=0, atol=1e-9)
+        compared += len(a)
+    held, every = colliders[True].stats, colliders[False].stats
+    assert compared > 50 and held.candidates < every.candidates and held.screened < every.screened / 1.5
+    assert held.cell_queries < 0.7 * every.cell_queries
 
 
 def test_empty_inputs_give_empty_contacts():

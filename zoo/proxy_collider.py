@@ -34,6 +34,14 @@ SDF since (:meth:`ProxyCollider._moved_at_most`: a large mesh's far parts, which
 cannot reach it), a call carries those answers, their values moved to first order along their normals, with no read
 at all (``stats.reused``): a persistent contact manifold, as the SDF's own answers are kept below.
 
+Held faces (``hold``, the compiled passes). Each full search leaves every face it settled a bound on the proxy's
+minimum over it (its Lipschitz bound, the screen's or the search's answer less its Frank-Wolfe gap), and each
+cluster the least of its faces'; every call adds to each cluster how far its points can have moved relative to the
+SDF (:class:`_HeldBounds`). A face (a whole cluster) whose bound, less L times its motion since, stays above the
+search margin is passed over with no read: the faces far from the contacts cost nothing step after step, and the
+work goes where the bounds run out. A search that cannot move from a face's corner or along a needle moves towards
+Frank-Wolfe's vertex instead, so that such faces settle (and are held) rather than stay open.
+
 Why clusters and not a carried bound per vertex (what :class:`zoo.CoherentCollider` does on the SDF itself): on
 the proxy a read costs what the bookkeeping of a carried bound would, so one read per cluster and per face near it
 is the cheaper proof, and it needs no state but the last answers (the search's warm starts and the kept contacts).
@@ -85,10 +93,14 @@ class ProxyCollider:
         deferred: a call returns the proxy's contacts, and :meth:`exact_contacts` the SDF's for the rows kept.
         kernel: how the per-face passes run: ``"numba"`` compiled (:mod:`zoo.proxy_kernel`, the default) or
             ``"numpy"`` (the reference the compiled passes are tested against; the same answers, slower).
+        hold: with the compiled passes, a face (a cluster) whose bound from its last answer, less L times how far
+            it has moved since, stays above the search margin is passed over with no read (see the module
+            docstring); False answers every face near the SDF at every full search, as the numpy passes do.
     """
 
     def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *, iters: int | None = None,
-                 polish: bool = True, reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba"):
+                 polish: bool = True, reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba",
+                 hold: bool = True):
         from .coherence import REUSE_FRACTION
 
         if not callable(getattr(proxy, "read_numpy", None)) or not hasattr(proxy, "error_bound"):
@@ -101,7 +113,7 @@ class ProxyCollider:
         self.deferred = bool(deferred)
         if kernel not in KERNELS:
             raise InputError(f"kernel= takes one of {', '.join(KERNELS)}, got {kernel!r}")
-        self.kernel = kernel
+        self.kernel, self.hold = kernel, bool(hold)
         self.reported_method = f"proxy+{method}"
         self._dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32  # the SDF's queries
         vertices, faces = mesh_tensors(mesh)
@@ -118,7 +130,7 @@ class ProxyCollider:
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()
         if kernel == "numba":  # compiled (or loaded from numba's cache) now, not in the first step
-            self._compiled_search(np.eye(3), np.zeros(3), self.margin, self.margin, CoherenceStats(), self._clusters[:0])
+            self._compiled_search(np.eye(3), np.zeros(3), self.margin, self.margin, CoherenceStats(), n_clusters=0)
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
@@ -128,6 +140,7 @@ class ProxyCollider:
         self._pending = None  # the last call's proxy contacts (_ProxyContacts), for the SDF to answer
         self._held = None  # the last full search's answers within its net (_Held), carried while the motion is small
         self._scratch = None  # the compiled passes' buffers (_KernelScratch), made at their first call
+        self._motion = _HeldBounds.empty(len(self._clusters), n)  # how far each cluster moved, and the faces' bounds
         self.last_candidates = torch.zeros(0, dtype=torch.int64)
 
     # -- a step --------------------------------------------------------------------------------------------------
@@ -143,6 +156,7 @@ class ProxyCollider:
         inverse[:3, :3], inverse[:3, 3] = sdf_pose[:3, :3].T, -sdf_pose[:3, :3].T @ sdf_pose[:3, 3]
         relative = inverse @ as_pose_array(mesh_pose, "mesh_pose")
         rotation, shift = relative[:3, :3], relative[:3, 3]
+        self._motion.move(relative, self._cluster_centre, self._cluster_radius)
         search = margin + self.proxy.error_bound
         held = self._held
         if held is not None and held.search == search and self._moved_at_most(held.relative, relative, search) <= self.reuse_distance:
@@ -203,23 +217,24 @@ class ProxyCollider:
 
     # -- the compiled passes (zoo.proxy_kernel) --------------------------------------------------------------------
 
-    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats, clusters=None):
-        """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`) over ``clusters`` (default:
-        all); a lazy proxy's bricks the reads met not ready are made ready and the call made again, until none is met."""
+    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats, n_clusters=None):
+        """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`) over the first
+        ``n_clusters`` clusters (default: all), passing over the faces held above the margin (``hold``); a lazy
+        proxy's bricks the reads met not ready are made ready and the call made again, until none is met."""
         from . import proxy_kernel as kernel
 
         if self._scratch is None:
             self._scratch = _KernelScratch(len(self._v), len(self._f))
-        k = self._scratch
+        k, held = self._scratch, self._motion
         lip = self.proxy.lipschitz
         while True:
             k.stamp += 1
             k.counts[:] = 0
             kernel.search_faces(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
-                                WARM_SEARCH_STEPS, lip, self._clusters if clusters is None else clusters,
-                                self._cluster_centre, self._cluster_radius,
+                                WARM_SEARCH_STEPS, lip, self._clusters[:n_clusters], self._cluster_centre, self._cluster_radius,
                                 self._lo, self._hi, self._f, self._v, self._reach, self._ball, self._last_bary,
-                                PATTERN[3:], self.proxy.grid(), k.vertex_stamp, k.stamp, k.vertex_local, k.vertex_answer,
+                                PATTERN[3:], self.proxy.grid(), self.hold, held.cluster_motion, held.cluster_key,
+                                held.face_key, k.vertex_stamp, k.stamp, k.vertex_local, k.vertex_answer,
                                 k.missing, k.counts, k.face, k.tri, k.bary, k.value, k.grad, k.status, k.searched_face,
                                 k.searched_bary)
             missed = int(k.counts[kernel.N_MISSING])
@@ -511,6 +526,34 @@ class _KernelScratch:
 
 
 @dataclass
+class _HeldBounds:
+    """What lets the compiled passes pass over faces held above the margin (``ProxyCollider(hold=True)``): the
+    relative pose (4, 4) of the last call (None: none yet), ``cluster_motion`` (C,) how far each cluster's points
+    have moved relative to the SDF over the calls (m, the sum of each call's bound), ``cluster_key`` (C,) and
+    ``face_key`` (F,) (:func:`zoo.proxy_kernel.search_faces` writes them: a bound on the proxy's minimum plus L
+    times the cluster's motion then; -inf: none)."""
+
+    relative: np.ndarray | None
+    cluster_motion: np.ndarray
+    cluster_key: np.ndarray
+    face_key: np.ndarray
+
+    @classmethod
+    def empty(cls, n_clusters: int, n_faces: int) -> _HeldBounds:
+        return cls(None, np.zeros(n_clusters), np.full(n_clusters, -np.inf), np.full(n_faces, -np.inf))
+
+    def move(self, relative: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> None:
+        """Add to each cluster (centres (C, 3), radii (C,), mesh frame) how far its points moved from the last
+        call's relative pose to ``relative`` (4, 4): |dR m + dt| + |dR|_F r for dR, dt the change of rotation and
+        shift."""
+        if self.relative is not None:
+            turn = relative[:3, :3] - self.relative[:3, :3]
+            self.cluster_motion += (np.linalg.norm(centres @ turn.T + (relative[:3, 3] - self.relative[:3, 3]), axis=1)
+                                    + np.linalg.norm(turn) * radii)
+        self.relative = relative
+
+
+@dataclass
 class _Held:
     """A full search's answers on the faces within its net: what later calls carry while the mesh moves less than
     ``reuse_distance`` relative to the SDF (a persistent contact manifold), their values moved to first order along
@@ -595,13 +638,20 @@ def _plane_descent(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> np.ndarr
 
 def _descent_segment(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The steepest descent of a field with gradients ``g`` (W, 3) inside the triangles (W, 3, 3) from ``bary`` (W, 3):
-    its barycentric direction (W, 3) (:func:`_plane_descent`) and how far along it the triangle reaches (W,) (0 where
-    it goes nowhere)."""
+    its barycentric direction (W, 3) (:func:`_plane_descent`) and how far along it the triangle reaches (W,). Where
+    that goes nowhere (a needle, whose plane is not defined, or a corner the plane's descent leaves), the direction
+    to Frank-Wolfe's vertex, a descent wherever its gap is positive, reaching it."""
     direction = _plane_descent(tri, bary, g)
     leaving = direction < 0
     with np.errstate(divide="ignore", invalid="ignore"):
         reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
-    return direction, np.where(np.isfinite(reach), reach, 0.0)
+    reach = np.where(np.isfinite(reach), reach, 0.0)
+    stuck = np.flatnonzero(reach * np.abs(direction).max(axis=1) <= 0)
+    if stuck.size:
+        vertex = np.einsum("wvc,wc->wv", tri[stuck], g[stuck]).argmin(axis=1)
+        direction[stuck] = np.eye(3)[vertex] - bary[stuck]
+        reach[stuck] = 1.0
+    return direction, reach
 
 
 def _on_simplex(bary: np.ndarray) -> np.ndarray:

@@ -109,7 +109,7 @@ def _frank_wolfe_gap(t, b0, b1, b2, gx, gy, gz):
 @njit(cache=True, error_model="numpy", inline="always")
 def _descent_segment(t, b, gx, gy, gz, direction):
     """``zoo.proxy_collider._descent_segment`` for one face: the steepest descent's barycentric direction (written
-    into ``direction`` (3,)) and how far along it the triangle reaches (returned; 0 where it goes nowhere)."""
+    into ``direction`` (3,)) and how far along it the triangle reaches (returned)."""
     e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
     e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
     a11, a12, a22 = e1x * e1x + e1y * e1y + e1z * e1z, e1x * e2x + e1y * e2y + e1z * e2z, e2x * e2x + e2y * e2y + e2z * e2z
@@ -137,7 +137,18 @@ def _descent_segment(t, b, gx, gy, gz, direction):
     for v in range(3):
         if direction[v] < 0:
             reach = min(reach, b[v] / -direction[v])
-    return reach if math.isfinite(reach) else 0.0
+    reach = reach if math.isfinite(reach) else 0.0
+    if reach * max(abs(direction[0]), abs(direction[1]), abs(direction[2])) > 0:
+        return reach
+    # nowhere (a needle, or a corner the plane's descent leaves): towards Frank-Wolfe's vertex, a descent wherever its
+    # gap is positive
+    s0 = gx * t[0, 0] + gy * t[0, 1] + gz * t[0, 2]
+    s1 = gx * t[1, 0] + gy * t[1, 1] + gz * t[1, 2]
+    s2 = gx * t[2, 0] + gy * t[2, 1] + gz * t[2, 2]
+    k = 0 if s0 <= min(s1, s2) else (1 if s1 <= s2 else 2)
+    for v in range(3):
+        direction[v] = (1.0 if v == k else 0.0) - b[v]
+    return 1.0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -184,6 +195,7 @@ def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
 def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, lipschitz,
                  clusters, cluster_centre, cluster_radius, bounds_lo, bounds_hi,
                  faces, vertices, reach, ball, last_bary, pattern, grid,
+                 hold, cluster_motion, cluster_key, face_key,
                  vertex_stamp, stamp, vertex_local, vertex_answer, missing, counts,
                  out_face, out_tri, out_bary, out_value, out_grad, out_status, searched_face, searched_bary):
     """The cull and the search of one call (``ProxyCollider._near_faces`` then ``_search``, see its module docstring).
@@ -196,6 +208,11 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         bounds_lo, bounds_hi (3,): the SDF's bounds. faces (F, 3) int64, vertices (V, 3): the mesh.
         reach (F, 3), ball (F,): ``zoo.bounds.triangle_reach``. last_bary (F, 3): each face's last answer (NaN: none).
         pattern (P, 3): a cold face's starts. grid: ``ProxySDF.grid()``.
+        hold: whether faces are passed over on their held bounds: ``cluster_motion`` (C,) how far each cluster's
+            points have moved relative to the SDF in all (m, summed over calls), ``face_key`` (F,) a face's bound
+            on its proxy minimum when last answered plus L times its cluster's motion then (-inf: none), and
+            ``cluster_key`` (C,) the least of its faces' keys: a face (a cluster) whose key less L times the motion
+            now exceeds the search margin cannot hold a contact and is passed over with no read. Both are updated.
         vertex_stamp (V,) int64, stamp: a vertex whose stamp is ``stamp`` was read this call, its SDF-frame place in
             ``vertex_local`` (V, 3) and its read in ``vertex_answer`` (V, 5) (value, gradient, status).
         missing (M,) int64: bricks not ready that reads met. counts (N_COUNTS,) int64, zeroed by the caller.
@@ -204,6 +221,7 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
             searched inside and their answers (``counts[N_SEARCHED]`` rows), the next call's warm starts.
     """
     near = np.empty(faces.shape[0], dtype=np.int64)
+    cluster_of = np.empty(faces.shape[0], dtype=np.int64)
     n_near = 0
     t = np.empty((3, 3))
     b = np.empty(3)
@@ -220,18 +238,27 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         oz = max(bounds_lo[2] - pz, 0.0) + max(pz - bounds_hi[2], 0.0)
         if math.sqrt(ox * ox + oy * oy + oz * oz) > cluster_radius[c] + search:
             continue
+        moved = lipschitz * cluster_motion[c]
+        if hold and cluster_key[c] - moved > search:  # every face of it held above the margin
+            continue
         value = read(px, py, pz, grid, missing, counts)[0]
         if not value - lipschitz * cluster_radius[c] <= search:  # NaN (missing) keeps it: its faces say
             if math.isfinite(value):
+                cluster_key[c] = max(cluster_key[c], value - lipschitz * cluster_radius[c] + moved)
                 continue
         for slot in range(size):
             face = clusters[c, slot]
             if face >= 0:
                 near[n_near] = face
+                cluster_of[n_near] = c
                 n_near += 1
     counts[FACES_NEAR] = n_near
     for i in range(n_near):
         face = near[i]
+        moved = lipschitz * cluster_motion[cluster_of[i]]
+        if hold and face_key[face] - moved > search:
+            counts[FACES_SKIPPED] += 1
+            continue
         lost = False  # a read met a brick not ready: the face is left out (the caller calls again)
         for k in range(3):
             v = faces[face, k]
@@ -255,6 +282,7 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         bound = max(bound, min(f0, f1, f2) - lipschitz * ball[face])
         if bound > search:
             counts[FACES_SKIPPED] += 1
+            face_key[face] = bound + moved
             continue
         counts[CANDIDATES] += 1
         lowest = 0
@@ -269,6 +297,7 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         gap = _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz)
         if value - gap > search:
             counts[SCREENED] += 1
+            face_key[face] = value - gap + moved
         elif gap > stop:  # the search inside: from the last answer (warm) or the lowest of the pattern's points (cold)
             warm = math.isfinite(last_bary[face, 0])
             if warm:
@@ -309,10 +338,13 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
                 b[0], b[1], b[2], value, gx, gy, gz, state = answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7]
             if lost:
                 continue
+            face_key[face] = value - _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz) + moved
             n = counts[N_SEARCHED]
             searched_face[n] = face
             searched_bary[n, 0], searched_bary[n, 1], searched_bary[n, 2] = b[0], b[1], b[2]
             counts[N_SEARCHED] = n + 1
+        else:  # the lowest vertex is a KKT point
+            face_key[face] = value - gap + moved
         if value <= net:
             n = counts[N_OUT]
             out_face[n] = face
@@ -324,3 +356,9 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
             out_grad[n, 0], out_grad[n, 1], out_grad[n, 2] = gx, gy, gz
             out_status[n] = int(state)
             counts[N_OUT] = n + 1
+    last = -1  # the clusters opened: their keys anew, the least of their faces' (the faces come cluster by cluster)
+    for i in range(n_near):
+        c = cluster_of[i]
+        if c != last:
+            cluster_key[c], last = math.inf, c
+        cluster_key[c] = min(cluster_key[c], face_key[near[i]])
