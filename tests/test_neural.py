@@ -133,6 +133,10 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
         assert torch.allclose(d, shape(p[:n]), atol=tol, rtol=0)
         assert torch.allclose(g[3:], ref_g[3:], atol=tol * float(ref_g.abs().max()), rtol=0)
         assert torch.isfinite(g).all()
+        few = shape.value_and_grad_few(p[:n].double().numpy(), dtype)  # numpy in, numpy out: the same answers
+        assert few[0].dtype == few[1].dtype == p.numpy().dtype
+        assert np.array_equal(few[0], d.numpy()) and np.array_equal(few[1], g.numpy())
+    assert shape.value_and_grad_few(np.zeros((SMALL_BATCH + 1, 3)), dtype) is None  # too many: the caller's torch path
 
 
 def test_dtypes_are_kept_and_bad_input_rejected():

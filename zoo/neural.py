@@ -516,12 +516,9 @@ class NeuralShape(SDFBase):
         n = chunk_size(self.config.n_codes)
         if not create_graph and not (torch.is_grad_enabled() and points.requires_grad):
             if points.shape[0] <= SMALL_BATCH and points.device.type == "cpu":
-                network = self._numpy_network(points.dtype)
-                if network is not None:
-                    s, r, t = self._similarity_numpy(network.dtype)
-                    values, grads = network.value_and_grad(s * points.numpy() @ r.T + t)
-                    # the source frame's gradient: R^T grad_n (the scale cancels)
-                    return torch.from_numpy(values / s), torch.from_numpy(grads @ r)
+                answer = self._few_in_numpy(points.numpy(), points.dtype)
+                if answer is not None:
+                    return tuple(torch.from_numpy(a) for a in answer)
             fast = self._value_and_grad_by_hand(points, n)
             if fast is not None:
                 return fast
@@ -534,6 +531,23 @@ class NeuralShape(SDFBase):
             values.append(d if create_graph else d.detach())
             grads.append(g if create_graph else g.detach())
         return torch.cat(values), torch.cat(grads)
+
+    def value_and_grad_few(self, points: np.ndarray, dtype: torch.dtype = torch.float32):
+        """:meth:`value_and_grad` at a few points (at most ``SMALL_BATCH``, (N, 3) numpy, source frame), asked in
+        ``dtype`` and answered as numpy arrays in it: (values (N,), gradients (N, 3)), or None where the numpy network
+        does not apply (more points, or a decoder it does not support). No validation, no torch: for a collider that
+        asks a handful of points many times a step."""
+        if len(points) > SMALL_BATCH:
+            return None
+        return self._few_in_numpy(points, dtype)
+
+    def _few_in_numpy(self, points: np.ndarray, dtype: torch.dtype):
+        network = self._numpy_network(dtype)
+        if network is None:
+            return None
+        s, r, t = self._similarity_numpy(network.dtype)
+        values, grads = network.value_and_grad(s * points.astype(network.dtype, copy=False) @ r.T + t)
+        return values / s, grads @ r  # the source frame's gradient: R^T grad_n (the scale cancels)
 
     def _numpy_network(self, dtype: torch.dtype) -> NumpyNetwork | None:
         """:class:`zoo.neural_numpy.NumpyNetwork` of this shape in ``dtype`` (built once, and again when the decoder's
