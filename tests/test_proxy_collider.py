@@ -169,6 +169,50 @@ def test_held_faces_are_those_that_hold_no_contact():
     assert held.cell_queries < 0.7 * every.cell_queries
 
 
+class CountingSphere:
+    """zoo.Sphere(0.05), counting the value-and-gradient queries asked of it."""
+
+    def __init__(self):
+        self.sphere, self.queries = zoo.Sphere(0.05), 0
+        self.bounds = self.sphere.bounds
+
+    def __call__(self, points):
+        return self.sphere(points)
+
+    def value_and_grad(self, points):
+        self.queries += 1
+        return self.sphere.value_and_grad(points)
+
+
+def test_pairs_on_one_sdf_ask_it_together():
+    """Two meshes on one SDF and proxy (a floor under the sphere and a wall beside it), deferred: answered together
+    (zoo.proxy_collider.exact_contacts_together, as a simulation step's pairs on one body are), they give each the
+    contacts it gives alone, with half the SDF queries."""
+    from zoo.proxy_collider import exact_contacts_together
+
+    sdf = CountingSphere()
+    proxy = bake_proxy(sdf.sphere, margin=1e-3, spacing=1e-3)
+    floor = plane_mesh(max_edge=0.004)
+    wall = (np.asarray(floor[0]) @ rotation((0, 1, 0), np.pi / 2)[:3, :3].T, floor[1])  # the plane x = 0
+    meshes = {"floor": (floor, None), "wall": (wall, None)}
+    sdf_pose = pose(rotation((0.3, 0.2, 1), 0.1), (0.0504, 0.001, 0.0503))  # within the margin of both, sinking a little
+    answers = {}
+    for together in (False, True):
+        colliders = [ProxyCollider(sdf, mesh, proxy, margin=1e-3, method="fw", deferred=True) for mesh, _ in meshes.values()]
+        rows = [torch.arange(len(c(sdf_pose, None))) for c in colliders]
+        before = sdf.queries
+        if together:
+            answers[together] = exact_contacts_together(list(zip(colliders, rows)))
+        else:
+            answers[together] = [c.exact_contacts(r) for c, r in zip(colliders, rows)]
+        answers[together, "queries"] = sdf.queries - before
+    for alone, with_other in zip(answers[False], answers[True]):
+        assert len(alone) > 3 and alone.triangles.tolist() == with_other.triangles.tolist()
+        torch.testing.assert_close(alone.depths, with_other.depths, rtol=0, atol=1e-7)
+        torch.testing.assert_close(alone.points, with_other.points, rtol=0, atol=1e-7)
+    assert answers[True, "queries"] * 2 == answers[False, "queries"]
+
+
 def test_empty_inputs_give_empty_contacts():
     sphere = zoo.Sphere(0.05)
     proxy = bake_proxy(sphere, margin=1e-3, spacing=2e-3)

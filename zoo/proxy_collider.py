@@ -191,13 +191,11 @@ class ProxyCollider:
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in
         the order given, less those whose SDF depth is beyond that call's margin (world frame)."""
-        if self._pending is None:
-            raise InputError("exact_contacts answers the last call's proxy contacts: call the collider (proxy=, deferred=True) first")
-        stats = CoherenceStats()
-        contacts = self._exact(np.asarray(torch.as_tensor(rows).cpu(), dtype=np.int64).reshape(-1), stats)
-        self.last_stats.add(stats)
-        self.stats.add(stats)
-        return contacts
+        return exact_contacts_together([(self, rows)])[0]
+
+    def _answer_key(self) -> tuple:
+        """Colliders with the same key answer their faces alike and may ask the SDF together."""
+        return (id(self.sdf), id(self.proxy), self.method, self.iters, self.polish, self._dtype)
 
     def _moved_at_most(self, then: np.ndarray, now: np.ndarray, search: float) -> float:
         """A bound (m) of how far a mesh point that can now lie within ``search`` of the SDF's bounding ball (centre s,
@@ -388,6 +386,15 @@ class ProxyCollider:
 
     def _exact(self, rows: np.ndarray, stats: CoherenceStats) -> Contacts:
         """The SDF's contacts at the rows ``rows`` of the last call's proxy contacts (see the module docstring)."""
+        request = self._exact_request(rows, stats)
+        if request.asked.size:
+            request.answered(*self._answer(request.tri[request.asked], request.bary[request.asked],
+                                           request.status[request.asked], request.margin, stats))
+        return self._exact_contacts(request)
+
+    def _exact_request(self, rows: np.ndarray, stats: CoherenceStats) -> _ExactRequest:
+        """The rows ``rows`` of the last call's proxy contacts, those whose SDF answer carries over (a persistent
+        contact: its depth moved to first order along its normal) filled in, the others ``asked`` of the SDF."""
         pending = self._pending
         faces, tri, bary, status = pending.faces[rows], pending.tri[rows], pending.bary[rows].copy(), pending.status[rows]
         n = len(faces)
@@ -395,22 +402,26 @@ class ProxyCollider:
         values, grads = np.zeros(n), np.zeros((n, 3))
         kept = self._answers.unmoved(faces, tri, self.reuse_distance)
         k = np.flatnonzero(kept)
-        if k.size:  # a persistent contact: its depth moved to first order along its normal
+        if k.size:
             bary[k], values[k], grads[k] = self._answers.carried(faces[k], tri[k])
             stats.exact_kept += int(k.size)
-        a = np.flatnonzero(~kept)
+        return _ExactRequest(faces, tri, bary, status, values, grads, np.flatnonzero(~kept), pending.margin)
+
+    def _exact_contacts(self, request: _ExactRequest) -> Contacts:
+        """The contacts of an answered request (world frame), the SDF's new answers stored."""
+        r, a = request, request.asked
         if a.size:
-            bary[a], values[a], grads[a] = self._answer(tri[a], bary[a], status[a], pending.margin, stats)
-            self._answers.store(faces[a], tri[a], bary[a], values[a], grads[a])
-        contact = values <= pending.margin
-        bary, values, normals = bary[contact], values[contact], _unit(grads[contact])
-        return self._contacts(pending.sdf_pose, faces[contact], bary, np.einsum("kv,kvc->kc", bary, tri[contact]), values,
-                              normals)
+            self._answers.store(r.faces[a], r.tri[a], r.bary[a], r.values[a], r.grads[a])
+        contact = r.values <= r.margin
+        bary, values, normals = r.bary[contact], r.values[contact], _unit(r.grads[contact])
+        return self._contacts(self._pending.sdf_pose, r.faces[contact], bary, np.einsum("kv,kvc->kc", bary, r.tri[contact]),
+                              values, normals)
 
     def _answer(self, tri, bary, status, margin, stats):
-        """The SDF's answers on faces (A, 3, 3) from the proxy's minimisers ``bary`` (A, 3) (``status`` (A,) there):
-        bary (A, 3), values (A,), gradients (A, 3)."""
+        """The SDF's answers on faces (A, 3, 3) from the proxy's minimisers ``bary`` (A, 3) (``status`` (A,) there),
+        within ``margin`` (a float, or (A,) one per face): bary (A, 3), values (A,), gradients (A, 3)."""
         bary = bary.copy()
+        margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (len(tri),))
         f, g = self._sdf_at(np.einsum("av,avc->ac", bary, tri), stats)
         gap = _frank_wolfe_gap(tri, bary, g)
         polish = np.flatnonzero((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin))
@@ -420,19 +431,24 @@ class ProxyCollider:
             rows = polish[lower]
             bary[rows], f[rows], g[rows] = b[lower], f1[lower], g1[lower]
         out = np.flatnonzero(status != IN_BAND)
-        if out.size:  # deeper than the band: the method from scratch on the SDF
-            stats.fallback += int(out.size)
-            local = torch.from_numpy(tri[out].reshape(-1, 3)).to(self._dtype)
-            unknown = torch.full(local.shape[:1], torch.nan, dtype=self._dtype)
-            with torch.no_grad():
-                b_cold, f_cold = solve_candidates(self.sdf, self.sdf, local, torch.arange(local.shape[0]).reshape(-1, 3),
-                                                  unknown, margin, self.method, self.iters, self.polish)
-            lower = f_cold.double().numpy() < f[out]
-            rows = out[lower]
-            if rows.size:
-                bary[rows] = b_cold.double().numpy()[lower]
-                f[rows], g[rows] = self._sdf_at(np.einsum("av,avc->ac", bary[rows], tri[rows]), stats)
+        for m in np.unique(margin[out]):  # deeper than the band: the method from scratch on the SDF (rare)
+            self._from_scratch(out[margin[out] == m], tri, bary, f, g, float(m), stats)
         return bary, f, g
+
+    def _from_scratch(self, out, tri, bary, f, g, margin: float, stats) -> None:
+        """The method from scratch on the SDF at the faces ``out`` of ``tri`` (A, 3, 3), its answers kept in ``bary``,
+        ``f`` and ``g`` (updated in place) where lower."""
+        stats.fallback += int(out.size)
+        local = torch.from_numpy(tri[out].reshape(-1, 3)).to(self._dtype)
+        unknown = torch.full(local.shape[:1], torch.nan, dtype=self._dtype)
+        with torch.no_grad():
+            b_cold, f_cold = solve_candidates(self.sdf, self.sdf, local, torch.arange(local.shape[0]).reshape(-1, 3),
+                                              unknown, margin, self.method, self.iters, self.polish)
+        lower = f_cold.double().numpy() < f[out]
+        rows = out[lower]
+        if rows.size:
+            bary[rows] = b_cold.double().numpy()[lower]
+            f[rows], g[rows] = self._sdf_at(np.einsum("av,avc->ac", bary[rows], tri[rows]), stats)
 
     def _polish(self, tri, bary, g, stats):
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
@@ -464,6 +480,65 @@ class ProxyCollider:
         return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
                         triangles=torch.from_numpy(np.ascontiguousarray(faces, dtype=np.int64)), bary=as_t(bary),
                         n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+
+
+def exact_contacts_together(requests) -> list[Contacts]:
+    """:meth:`ProxyCollider.exact_contacts` for several colliders at once (``requests``: (collider, rows (R,)) pairs,
+    each collider called ``deferred`` first): the colliders that answer on the same SDF and proxy, in the same way,
+    ask the SDF together, one query for all their faces (and one for all their polishing steps), as a step's pairs
+    on one body do. The contacts of each, in the order given; each collider's stats count its own faces, the
+    first of a group the group's queries."""
+    groups: dict[tuple, list[int]] = {}
+    for i, (collider, _) in enumerate(requests):
+        if collider._pending is None:
+            raise InputError("exact_contacts answers the last call's proxy contacts: call the collider (proxy=, deferred=True) first")
+        groups.setdefault(collider._answer_key(), []).append(i)
+    out = [None] * len(requests)
+    for members in groups.values():
+        colliders = [requests[i][0] for i in members]
+        stats = [CoherenceStats() for _ in members]
+        asked = [c._exact_request(np.asarray(torch.as_tensor(requests[i][1]).cpu(), dtype=np.int64).reshape(-1), s)
+                 for c, i, s in zip(colliders, members, stats)]
+        _answer_together(colliders[0], asked, stats[0])
+        for i, collider, request, s in zip(members, colliders, asked, stats):
+            out[i] = collider._exact_contacts(request)
+            collider.last_stats.add(s)
+            collider.stats.add(s)
+    return out
+
+
+def _answer_together(collider: ProxyCollider, requests: list[_ExactRequest], stats: CoherenceStats) -> None:
+    """The SDF's answers to every request's ``asked`` rows, in one :meth:`ProxyCollider._answer` of ``collider``."""
+    parts = [(r.tri[r.asked], r.bary[r.asked], r.status[r.asked], np.full(r.asked.size, r.margin)) for r in requests]
+    tri, bary, status, margins = (np.concatenate(column) for column in zip(*parts))
+    if not margins.size:
+        return
+    bary, values, grads = collider._answer(tri, bary, status, margins, stats)
+    start = 0
+    for r in requests:
+        end = start + r.asked.size
+        r.answered(bary[start:end], values[start:end], grads[start:end])
+        start = end
+
+
+@dataclass
+class _ExactRequest:
+    """Proxy contacts the SDF answers (:meth:`ProxyCollider._exact_request`): ``faces`` (R,), ``tri`` (R, 3, 3) SDF
+    frame, the proxy's ``bary`` (R, 3) and ``status`` (R,), the answers so far ``values`` (R,) and ``grads`` (R, 3)
+    (the carried ones filled in), the rows ``asked`` of the SDF, and the call's ``margin``."""
+
+    faces: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    status: np.ndarray
+    values: np.ndarray
+    grads: np.ndarray
+    asked: np.ndarray
+    margin: float
+
+    def answered(self, bary: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
+        """The SDF's answers (bary (A, 3), values (A,), gradients (A, 3)) at the rows ``asked``."""
+        self.bary[self.asked], self.values[self.asked], self.grads[self.asked] = bary, values, grads
 
 
 @dataclass

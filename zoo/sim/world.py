@@ -488,18 +488,17 @@ class World:
             stats.speculative |= closing > max(self.margin, pair.params.margin)
             near.append((pair, margin))
         segments = self._collide_segments([(p, m) for p, m in near if p.kind == "segment"], data)
+        found = []  # (pair, contacts, the rows kept, their arrays)
         for pair, margin in near:
             if pair.kind == "segment":
                 contacts, faces_world = segments.get(id(pair), (None, None))
             else:
                 contacts, faces_world = self._collide(pair, data, margin)
-            found = self._usable(pair, data, contacts, faces_world, velocities)
-            if found is None:
-                continue
-            contacts, keep, arrays = found
-            stats.raw_contacts += len(contacts)
-            if len(keep) and getattr(pair.collider, "deferred", False):  # the proxy chose them: the SDF answers them
-                contacts, keep, arrays = self._exact(pair, keep)
+            usable = self._usable(pair, data, contacts, faces_world, velocities)
+            if usable is not None:
+                stats.raw_contacts += len(usable[0])
+                found.append((pair, *usable))
+        for pair, contacts, keep, arrays in self._exact(found):
             if not len(keep):
                 continue
             r = contact_rows(arrays, keep, (pair.sdf_body.geom, pair.geom))
@@ -572,12 +571,23 @@ class World:
         return contacts, keep, (points, depths, normals)
 
     @staticmethod
-    def _exact(pair: Pair, keep: np.ndarray):
-        """The SDF's own contacts at the rows ``keep`` of the pair's last (proxy) contacts: (contacts, every row of them,
-        their :func:`as_numpy` arrays); the rows whose SDF depth is beyond the margin are dropped."""
-        contacts = pair.collider.exact_contacts(torch.as_tensor(keep))
-        contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]
-        return contacts, np.arange(len(contacts)), as_numpy(contacts)
+    def _exact(found: list[tuple]) -> list[tuple]:
+        """``found`` (pair, contacts, rows kept, their arrays) with the SDF's own contacts in place of the proxy's where
+        a pair's proxy chose them (every row of them kept, those whose SDF depth is beyond the margin dropped): the
+        pairs of a step on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
+        from ..proxy_collider import exact_contacts_together
+
+        deferred = [i for i, (pair, _, keep, _) in enumerate(found) if len(keep) and getattr(pair.collider, "deferred", False)]
+        if not deferred:
+            return found
+        found = list(found)
+        answers = exact_contacts_together([(found[i][0].collider.proxy_collider, found[i][2]) for i in deferred])
+        for i, contacts in zip(deferred, answers):
+            pair = found[i][0]
+            pair.collider.last_stats = pair.collider.proxy_collider.last_stats
+            contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]
+            found[i] = (pair, contacts, np.arange(len(contacts)), as_numpy(contacts))
+        return found
 
     def _collide_refining_near(self, pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float):
         """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a pair whose mesh is refined near
