@@ -23,7 +23,8 @@ the faces (``kernel="numpy"``, the reference the compiled loop is tested against
    gap there exceeds ``POLISH_GAP_FRACTION`` of the margin, one step along the SDF's steepest descent inside the
    face, its length chosen on the proxy, and the SDF's value and gradient at its end, kept where lower; and
    the method from scratch on the SDF where the proxy's minimiser lies out of its band (a penetration deeper than
-   the band). A face that moved less than ``reuse_distance`` since the SDF answered it keeps that answer, its
+   the band). Colliders on one SDF and proxy answer together (:func:`exact_contacts_together`: a simulation step's
+   pairs on one body ask the SDF once). A face that moved less than ``reuse_distance`` since the SDF answered it keeps that answer, its
    depth moved to first order along its normal (a persistent contact). Every contact's point, depth and normal
    are the SDF's.
 
