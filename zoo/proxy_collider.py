@@ -388,9 +388,7 @@ class ProxyCollider:
     def _exact(self, rows: np.ndarray, stats: CoherenceStats) -> Contacts:
         """The SDF's contacts at the rows ``rows`` of the last call's proxy contacts (see the module docstring)."""
         request = self._exact_request(rows, stats)
-        if request.asked.size:
-            request.answered(*self._answer(request.tri[request.asked], request.bary[request.asked],
-                                           request.status[request.asked], request.margin, stats))
+        _answer_together(self, [request], stats)
         return self._exact_contacts(request)
 
     def _exact_request(self, rows: np.ndarray, stats: CoherenceStats) -> _ExactRequest:

@@ -584,7 +584,6 @@ class World:
         answers = exact_contacts_together([(found[i][0].collider.proxy_collider, found[i][2]) for i in deferred])
         for i, contacts in zip(deferred, answers):
             pair = found[i][0]
-            pair.collider.last_stats = pair.collider.proxy_collider.last_stats
             contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]
             found[i] = (pair, contacts, np.arange(len(contacts)), as_numpy(contacts))
         return found
