@@ -328,7 +328,7 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
                 if warm and step == warm_steps:
                     break
                 gap = _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz)
-                if not (gap > stop and value - gap <= search):
+                if not (gap > stop and value - gap <= search and state == IN_BAND):  # out of band: see ProxyCollider
                     break
                 if not _descend(t, b, value, gx, gy, gz, grid, missing, counts, direction, answer):
                     lost = True
