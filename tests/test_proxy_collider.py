@@ -213,6 +213,69 @@ def test_pairs_on_one_sdf_ask_it_together():
     assert answers[True, "queries"] * 2 == answers[False, "queries"]
 
 
+def test_deepest_per_cell_against_a_dictionary():
+    """zoo.proxy_kernel.deepest_per_cell against a dictionary of each (cell, group)'s least value, the first of
+    equals: many rows per cell, negative cells, ties."""
+    from zoo.proxy_kernel import deepest_per_cell
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 7, 3000):
+        cells = rng.integers(-4, 4, size=(n, 3))
+        group = rng.integers(0, 2, size=n)
+        values = rng.integers(0, 20, size=n) * 1e-4  # ties
+        best = {}
+        for i in range(n):
+            key = (*cells[i].tolist(), int(group[i]))
+            if key not in best or values[i] < values[best[key]]:
+                best[key] = i
+        assert deepest_per_cell(cells, group, values).tolist() == sorted(best.values())
+
+
+def test_thinned_contacts_are_the_deepest_per_cell_of_those_facing_and_the_others():
+    """A deferred collider with a Thinning against the same collider without: a sphere sliding, turning and sinking
+    over a plane of long thin faces tilted under it (contacts on both sides of the facing test) gives, at every step,
+    per cell of the world's grid the deepest contact that faces its face (zoo.sim.contacts.facing_faces) and the
+    deepest of the others, as picked from every contact by a dictionary; and the reduction a simulation makes
+    keeps the same contacts from either."""
+    from zoo.geometry import face_normals
+    from zoo.proxy_collider import Thinning
+    from zoo.sim.contacts import GRAZING_COS, SEPARATED_COS, facing_faces, reduce_contacts
+
+    sphere = zoo.Sphere(0.05)
+    vertices, faces = plane_mesh(max_edge=0.004)
+    vertices = np.asarray(vertices, dtype=np.float64) * np.array([1.0, 0.3, 1.0])
+    mesh = (torch.from_numpy(vertices), torch.as_tensor(np.asarray(faces)))  # float64: the contacts' points as the cells'
+    normals = face_normals(vertices[np.asarray(faces)])
+    proxy = bake_proxy(sphere, margin=2e-3, spacing=1e-3)
+    cell = 1.37e-3
+    thin = Thinning(cell, GRAZING_COS, SEPARATED_COS)
+    every, thinned = (ProxyCollider(sphere, mesh, proxy, margin=2e-3, method="fw", deferred=True, thin=t) for t in (None, thin))
+    # the mesh moved off the cells' faces (its vertices on x, y, z = 0: rounding could put a point either side)
+    off = np.array([0.3, 0.2, 0.4]) * cell
+    lift = pose(None, off)
+    compared = 0
+    for step in range(10):
+        sdf_pose = pose(rotation((0.3, 0.2, 1), 0.05 * step), off + (4e-4 * step, -2e-4 * step, 0.0495 - 1e-4 * step))
+        a, b = every(sdf_pose, lift), thinned(sdf_pose, lift)
+        points, depths, contact_normals = (x.double().numpy() for x in (a.points, a.depths, a.normals))
+        face_world = normals[a.triangles.numpy()]  # the mesh is only moved
+        facing = facing_faces(contact_normals, face_world, depths)
+        best = {}
+        for i in range(len(a)):
+            key = (*np.floor(points[i] / cell).astype(np.int64).tolist(), bool(facing[i]))
+            if key not in best or depths[i] < depths[best[key]]:
+                best[key] = i
+        expected = sorted(best.values())
+        assert a.triangles[expected].tolist() == b.triangles.tolist()
+        torch.testing.assert_close(a.depths[expected], b.depths, rtol=0, atol=0)
+        kept = [reduce_contacts(*(x[usable] for x in (points, depths, contact_normals, face_world)), merge_tol=2 * cell)
+                for usable in (facing, np.isin(np.arange(len(a)), expected) & facing)]
+        assert np.flatnonzero(facing)[kept[0]].tolist() == np.flatnonzero(np.isin(np.arange(len(a)), expected) & facing)[kept[1]].tolist()
+        compared += len(a) - len(b)
+        assert (~facing).any() or step < 3
+    assert compared > 100  # thinning left rows out
+
+
 def test_empty_inputs_give_empty_contacts():
     sphere = zoo.Sphere(0.05)
     proxy = bake_proxy(sphere, margin=1e-3, spacing=2e-3)

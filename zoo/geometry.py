@@ -7,6 +7,7 @@ arguments is :mod:`zoo.validation`'s job; these functions take validated tensors
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -111,3 +112,10 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     inv[:3, :3] = r.T
     inv[:3, 3] = -(r.T @ pose[:3, 3])
     return inv
+
+
+def face_normals(triangles: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) -> (K, 3) unit normals (numpy); zeros for degenerate (zero-area) triangles."""
+    face = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    length = np.linalg.norm(face, axis=1, keepdims=True)
+    return face / np.where(length > 0, length, 1.0)

@@ -64,6 +64,7 @@ from .bounds import triangle_reach
 from .coherence import POLISH_GAP_FRACTION, CoherenceStats, moved_along_normal
 from .collision import Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
+from .geometry import face_normals
 from .methods import iterations
 from .proxy import IN_BAND
 from .validation import as_pose_array, non_negative_float
@@ -80,6 +81,20 @@ BOUNDARY = 1e-9  # barycentric coordinates this small put a point on its triangl
 # any part of the face has a start near it; the last answer is added per face.
 PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5],
                     [4 / 6, 1 / 6, 1 / 6], [1 / 6, 4 / 6, 1 / 6], [1 / 6, 1 / 6, 4 / 6], [1 / 3, 1 / 3, 1 / 3]])
+
+
+@dataclass(frozen=True)
+class Thinning:
+    """How a ``deferred`` collider thins its proxy contacts before it returns them (``ProxyCollider(thin=...)``): per
+    cell of side ``cell`` (m, the world frame's integer grid), the deepest contact whose normal (the proxy's) lies
+    close to its face's normal (|cos| at least ``touching_cos`` where its depth is at most 0, ``separated_cos``
+    beyond; a degenerate face's always does), and the deepest of the others. ``zoo.sim``'s reduction keeps at most
+    the deepest per such cell of the contacts that face their faces: the rest would cost it work per row for
+    nothing (a finer mesh puts more faces within the margin, not more contacts in the manifold)."""
+
+    cell: float
+    touching_cos: float
+    separated_cos: float
 
 
 class ProxyCollider:
@@ -100,11 +115,13 @@ class ProxyCollider:
         hold: with the compiled passes, a face (a cluster) whose bound from its last answer, less L times how far
             it has moved since, stays above the search margin is passed over with no read (see the module
             docstring); False answers every face near the SDF at every full search, as the numpy passes do.
+        thin: with ``deferred``, a :class:`Thinning`: a call returns, per cell, only the proxy contacts a
+            simulation's reduction can keep (None: every face within the margin).
     """
 
     def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *, iters: int | None = None,
                  polish: bool = True, reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba",
-                 hold: bool = True):
+                 hold: bool = True, thin: Thinning | None = None):
         from .coherence import REUSE_FRACTION
 
         if not callable(getattr(proxy, "read_numpy", None)) or not hasattr(proxy, "error_bound"):
@@ -118,6 +135,9 @@ class ProxyCollider:
         if kernel not in KERNELS:
             raise InputError(f"kernel= takes one of {', '.join(KERNELS)}, got {kernel!r}")
         self.kernel, self.hold = kernel, bool(hold)
+        if thin is not None and not isinstance(thin, Thinning):
+            raise InputError(f"thin= takes a zoo.proxy_collider.Thinning or None, got {type(thin).__name__}")
+        self.thin = thin
         self.reported_method = f"proxy+{method}"
         self._dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32  # the SDF's queries
         vertices, faces = mesh_tensors(mesh)
@@ -132,6 +152,7 @@ class ProxyCollider:
         self._f, self._v = _by_first_use(f[self._face_id], v)  # (F, 3), (V', 3) mesh frame
         corners = self._v[self._f]  # (F, 3, 3)
         self._reach, self._ball = (t.numpy() for t in triangle_reach(torch.from_numpy(corners)))  # (F, 3), (F,)
+        self._normal = face_normals(corners)  # (F, 3) unit, mesh frame (zeros: degenerate)
         lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64).cpu()).reshape(3) for b in proxy.bounds)
         self._lo, self._hi = lo, hi
         self._sdf_centre, self._sdf_radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2  # its bounding ball
@@ -180,8 +201,11 @@ class ProxyCollider:
                 faces, tri, bary, values, grads, status = self._numpy_search(rotation, shift, search, net, stats)
             t1 = time.perf_counter()
             self._held = _Held(relative, search, faces, tri, bary, values, grads, status)
-        hit = values <= search
-        faces, tri, bary, values, grads, status = faces[hit], tri[hit], bary[hit], values[hit], grads[hit], status[hit]
+        if self.deferred and self.thin is not None:
+            rows = self._thinned(sdf_pose, rotation, search, faces, tri, bary, values, grads)
+        else:
+            rows = np.flatnonzero(values <= search)
+        faces, tri, bary, values, grads, status = faces[rows], tri[rows], bary[rows], values[rows], grads[rows], status[rows]
         points = np.einsum("sv,svc->sc", bary, tri)
         self._pending = _ProxyContacts(sdf_pose, faces, tri, bary, status, margin)
         self.last_candidates = torch.from_numpy(self._face_id[faces])
@@ -195,6 +219,15 @@ class ProxyCollider:
         self.last_stats = stats
         self.stats.add(stats)
         return contacts
+
+    def _thinned(self, sdf_pose, rotation, search: float, faces, tri, bary, values, grads) -> np.ndarray:
+        """The rows (K,) of the answers (faces (N,), SDF-frame corners (N, 3, 3), bary (N, 3), values (N,), gradients
+        (N, 3)) that are proxy contacts (at most ``search``) and that ``thin`` keeps (see :class:`Thinning`)."""
+        from .proxy_kernel import thinned_rows
+
+        thin = self.thin
+        return thinned_rows(values, bary, tri, grads, faces, search, self._normal, rotation, sdf_pose[:3, :3],
+                            sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos)
 
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in

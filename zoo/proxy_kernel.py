@@ -362,3 +362,74 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         if c != last:
             cluster_key[c], last = math.inf, c
         cluster_key[c] = min(cluster_key[c], face_key[near[i]])
+
+
+@njit(cache=True)
+def deepest_per_cell(cells, group, values):
+    """Of the rows (N,) sharing a cell ``cells`` (N, 3) int64 and a ``group`` (N,) int64, the one of least ``values``
+    (N,) (the first of equals): their indices (K,), ascending. One pass over an open-addressing table, where sorting
+    the rows by cell would cost more than the rows' other work."""
+    n = values.shape[0]
+    size = 16
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    slot_row = np.full(size, -1, dtype=np.int64)
+    for i in range(n):
+        h = (cells[i, 0] * 73856093) ^ (cells[i, 1] * 19349663) ^ (cells[i, 2] * 83492791) ^ (group[i] * 2654435761)
+        s = h & mask
+        while True:
+            r = slot_row[s]
+            if r < 0:
+                slot_row[s] = i
+                break
+            if cells[r, 0] == cells[i, 0] and cells[r, 1] == cells[i, 1] and cells[r, 2] == cells[i, 2] and group[r] == group[i]:
+                if values[i] < values[r]:
+                    slot_row[s] = i
+                break
+            s = (s + 1) & mask
+    rows = slot_row[slot_row >= 0]
+    rows.sort()
+    return rows
+
+
+@njit(cache=True)
+def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation, sdf_rotation, sdf_shift, cell,
+                 touching_cos, separated_cos):
+    """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
+    contacts (the answers at most ``search``), in one pass.
+
+    Args:
+        values (N,), bary (N, 3), tri (N, 3, 3), grads (N, 3), faces (N,): the answers (the SDF's frame).
+        face_normal (F, 3): the faces' unit normals in the mesh's frame (zeros: degenerate); rotation (3, 3): the
+            mesh's in the SDF's frame. sdf_rotation (3, 3), sdf_shift (3,): the SDF's pose in the world.
+        cell, touching_cos, separated_cos: the ``Thinning``'s.
+    """
+    n = values.shape[0]
+    cells = np.empty((n, 3), dtype=np.int64)
+    group = np.empty(n, dtype=np.int64)
+    rows = np.empty(n, dtype=np.int64)
+    kept_values = np.empty(n)
+    m = 0
+    for i in range(n):
+        if not values[i] <= search:
+            continue
+        for a in range(3):  # the point in the world, its cell
+            p = (sdf_rotation[a, 0] * (bary[i, 0] * tri[i, 0, 0] + bary[i, 1] * tri[i, 1, 0] + bary[i, 2] * tri[i, 2, 0])
+                 + sdf_rotation[a, 1] * (bary[i, 0] * tri[i, 0, 1] + bary[i, 1] * tri[i, 1, 1] + bary[i, 2] * tri[i, 2, 1])
+                 + sdf_rotation[a, 2] * (bary[i, 0] * tri[i, 0, 2] + bary[i, 1] * tri[i, 1, 2] + bary[i, 2] * tri[i, 2, 2])
+                 + sdf_shift[a])
+            cells[m, a] = int(math.floor(p / cell))
+        f = faces[i]
+        nx = rotation[0, 0] * face_normal[f, 0] + rotation[0, 1] * face_normal[f, 1] + rotation[0, 2] * face_normal[f, 2]
+        ny = rotation[1, 0] * face_normal[f, 0] + rotation[1, 1] * face_normal[f, 1] + rotation[1, 2] * face_normal[f, 2]
+        nz = rotation[2, 0] * face_normal[f, 0] + rotation[2, 1] * face_normal[f, 1] + rotation[2, 2] * face_normal[f, 2]
+        length = math.sqrt(grads[i, 0] ** 2 + grads[i, 1] ** 2 + grads[i, 2] ** 2)
+        cos = abs(nx * grads[i, 0] + ny * grads[i, 1] + nz * grads[i, 2]) / length if length > 0 else 0.0
+        degenerate = face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0
+        facing = degenerate or cos >= (separated_cos if values[i] > 0 else touching_cos)
+        group[m] = 1 if facing else 0
+        rows[m] = i
+        kept_values[m] = values[i]
+        m += 1
+    return rows[deepest_per_cell(cells[:m], group[:m], kept_values[:m])]

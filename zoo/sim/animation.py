@@ -25,8 +25,8 @@ import numpy as np
 
 from ..errors import require
 from ..files import atomic_path
+from ..geometry import face_normals
 from ..scene_picture import MESH_COLOUR, SDF_COLOUR, clipped_to_cube, draw_panel, posed, shaded, surface_points
-from .contacts import face_normals
 from .geoms import cube_corners
 
 MAX_FRAMES = 60

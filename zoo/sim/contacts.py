@@ -259,13 +259,6 @@ GRAZING_COS = 0.5  # a touching contact whose SDF normal is more than 60 degrees
 SEPARATED_COS = math.cos(math.radians(15.0))  # a separated one (distance > 0): more than 15 degrees
 
 
-def face_normals(triangles: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) -> (K, 3) unit normals; zeros for degenerate (zero-area) triangles."""
-    face = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    length = np.linalg.norm(face, axis=1, keepdims=True)
-    return face / np.where(length > 0, length, 1.0)
-
-
 def facing_faces(normals: np.ndarray, faces: np.ndarray, depths: np.ndarray) -> np.ndarray:
     """(K,) bool: keep the contact; its SDF normal (K, 3) is close enough to its face's unit normal (K, 3).
 

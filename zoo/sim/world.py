@@ -40,16 +40,17 @@ import torch
 import zoo
 
 from ..errors import InputError
-from ..geometry import invert_pose
+from ..geometry import face_normals, invert_pose
 from ..methods import method_for
 from ..validation import non_negative_float
 from .contacts import (
+    GRAZING_COS,
     REFINE_CELLS,
+    SEPARATED_COS,
     add_contacts,
     as_numpy,
     closing_in_time,
     contact_rows,
-    face_normals,
     facing_faces,
     reduce_contacts,
     refine_near,
@@ -346,6 +347,10 @@ class World:
             mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
             pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
                                                  coherence=self.coherence, proxy=self._proxy_for(sdf_body), deferred=True)
+            if self.reduce and pair.collider.proxy_collider is not None:  # only what the reduction can keep comes back
+                from ..proxy_collider import Thinning
+
+                pair.collider.proxy_collider.thin = Thinning(0.5 * self._merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
             pair.refined = RefinedMesh(vertices, faces, origin, face_normals(vertices[faces]))
         return pair
 
@@ -566,9 +571,14 @@ class World:
             points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
         keep = np.nonzero(usable)[0]
         if self.reduce and len(keep):
-            merge = MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
-            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep], merge_tol=merge)]
+            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep],
+                                        merge_tol=self._merge_distance(sdf_body))]
         return contacts, keep, (points, depths, normals)
+
+    @staticmethod
+    def _merge_distance(sdf_body: SdfBody) -> float:
+        """m: the reduction's ``merge_tol`` for the contacts of ``sdf_body``'s pairs."""
+        return MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
 
     @staticmethod
     def _exact(found: list[tuple]) -> list[tuple]:
