@@ -231,15 +231,15 @@ def test_deepest_per_cell_against_a_dictionary():
         assert deepest_per_cell(cells, group, values).tolist() == sorted(best.values())
 
 
-def test_thinned_contacts_are_the_deepest_per_cell_of_those_facing_and_the_others():
+def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use():
     """A deferred collider with a Thinning against the same collider without: a sphere sliding, turning and sinking
-    over a plane of long thin faces tilted under it (contacts on both sides of the facing test) gives, at every step,
-    per cell of the world's grid the deepest contact that faces its face (zoo.sim.contacts.facing_faces) and the
-    deepest of the others, as picked from every contact by a dictionary; and the reduction a simulation makes
-    keeps the same contacts from either."""
+    over a plane of long thin faces (contacts that face their faces and contacts that do not, separated contacts the
+    bodies close in time and ones they do not) gives, at every step, per cell of the world's grid the deepest of the
+    contacts that zoo.sim.contacts' facing_faces and closing_in_time let through, as a dictionary picks them from
+    every contact; and the reduction a simulation makes keeps the same contacts from either."""
     from zoo.geometry import face_normals
     from zoo.proxy_collider import Thinning
-    from zoo.sim.contacts import GRAZING_COS, SEPARATED_COS, facing_faces, reduce_contacts
+    from zoo.sim.contacts import GRAZING_COS, SEPARATED_COS, closing_in_time, facing_faces, reduce_contacts
 
     sphere = zoo.Sphere(0.05)
     vertices, faces = plane_mesh(max_edge=0.004)
@@ -247,33 +247,40 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_facing_and_the_other
     mesh = (torch.from_numpy(vertices), torch.as_tensor(np.asarray(faces)))  # float64: the contacts' points as the cells'
     normals = face_normals(vertices[np.asarray(faces)])
     proxy = bake_proxy(sphere, margin=2e-3, spacing=1e-3)
-    cell = 1.37e-3
-    thin = Thinning(cell, GRAZING_COS, SEPARATED_COS)
-    every, thinned = (ProxyCollider(sphere, mesh, proxy, margin=2e-3, method="fw", deferred=True, thin=t) for t in (None, thin))
+    cell, seconds = 1.37e-3, 0.003
+    # the sphere's motion: its centre sinking and sliding, turning about a tilted axis; the plane at rest
+    sphere_motion = (np.array([0.01, 0.02, -0.3]), np.array([0.5, -1.0, 2.0]))  # (velocity, angular velocity)
+    every, thinned = (ProxyCollider(sphere, mesh, proxy, margin=2e-3, method="fw", deferred=True, thin=t)
+                      for t in (None, Thinning(cell, GRAZING_COS, SEPARATED_COS)))
     # the mesh moved off the cells' faces (its vertices on x, y, z = 0: rounding could put a point either side)
     off = np.array([0.3, 0.2, 0.4]) * cell
     lift = pose(None, off)
-    compared = 0
+    compared = left_out = 0
     for step in range(10):
         sdf_pose = pose(rotation((0.3, 0.2, 1), 0.05 * step), off + (4e-4 * step, -2e-4 * step, 0.0495 - 1e-4 * step))
+        origin = sdf_pose[:3, 3]
+        v, w = sphere_motion
+        thinned.thin = Thinning(cell, GRAZING_COS, SEPARATED_COS, closing=(v - np.cross(w, origin), w, seconds))
         a, b = every(sdf_pose, lift), thinned(sdf_pose, lift)
         points, depths, contact_normals = (x.double().numpy() for x in (a.points, a.depths, a.normals))
         face_world = normals[a.triangles.numpy()]  # the mesh is only moved
-        facing = facing_faces(contact_normals, face_world, depths)
+        usable = facing_faces(contact_normals, face_world, depths) & closing_in_time(
+            points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)), seconds, 1.0)
         best = {}
-        for i in range(len(a)):
-            key = (*np.floor(points[i] / cell).astype(np.int64).tolist(), bool(facing[i]))
+        for i in np.flatnonzero(usable):
+            key = tuple(np.floor(points[i] / cell).astype(np.int64).tolist())
             if key not in best or depths[i] < depths[best[key]]:
                 best[key] = i
         expected = sorted(best.values())
         assert a.triangles[expected].tolist() == b.triangles.tolist()
         torch.testing.assert_close(a.depths[expected], b.depths, rtol=0, atol=0)
-        kept = [reduce_contacts(*(x[usable] for x in (points, depths, contact_normals, face_world)), merge_tol=2 * cell)
-                for usable in (facing, np.isin(np.arange(len(a)), expected) & facing)]
-        assert np.flatnonzero(facing)[kept[0]].tolist() == np.flatnonzero(np.isin(np.arange(len(a)), expected) & facing)[kept[1]].tolist()
-        compared += len(a) - len(b)
-        assert (~facing).any() or step < 3
-    assert compared > 100  # thinning left rows out
+        kept = reduce_contacts(*(x[usable] for x in (points, depths, contact_normals, face_world)), merge_tol=2 * cell)
+        b_points, b_depths, b_normals = (x.double().numpy() for x in (b.points, b.depths, b.normals))
+        kept_thinned = reduce_contacts(b_points, b_depths, b_normals, normals[b.triangles.numpy()], merge_tol=2 * cell)
+        assert a.triangles[np.flatnonzero(usable)[kept]].tolist() == b.triangles[kept_thinned].tolist()
+        compared += len(b)
+        left_out += int(((depths > 0) & ~usable).sum()) * (step >= 3)
+    assert compared > 100 and left_out > 0  # separated contacts the motion does not close were among them
 
 
 def test_empty_inputs_give_empty_contacts():

@@ -85,16 +85,20 @@ PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5
 
 @dataclass(frozen=True)
 class Thinning:
-    """How a ``deferred`` collider thins its proxy contacts before it returns them (``ProxyCollider(thin=...)``): per
-    cell of side ``cell`` (m, the world frame's integer grid), the deepest contact whose normal (the proxy's) lies
-    close to its face's normal (|cos| at least ``touching_cos`` where its depth is at most 0, ``separated_cos``
-    beyond; a degenerate face's always does), and the deepest of the others. ``zoo.sim``'s reduction keeps at most
-    the deepest per such cell of the contacts that face their faces: the rest would cost it work per row for
-    nothing (a finer mesh puts more faces within the margin, not more contacts in the manifold)."""
+    """How a ``deferred`` collider thins its proxy contacts before it returns them (``ProxyCollider.thin``): per cell
+    of side ``cell`` (m, the world's integer grid), the deepest of the contacts a simulation can use, those that
+    face their faces (the normal, the proxy's, within |cos| ``touching_cos`` of the face's where the depth is at
+    most 0, ``separated_cos`` beyond; a degenerate face always does) and, separated, close within the time
+    (``closing`` = (u (3,), w (3,), seconds): u + w x p is the SDF body's velocity less the mesh's at the world point
+    p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None: every one counts). These are
+    ``zoo.sim.contacts``' ``facing_faces`` and ``closing_in_time``, and its reduction keeps at most the deepest per
+    such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
+    faces within the margin, not more contacts in the manifold)."""
 
     cell: float
     touching_cos: float
     separated_cos: float
+    closing: tuple | None = None
 
 
 class ProxyCollider:
@@ -226,8 +230,10 @@ class ProxyCollider:
         from .proxy_kernel import thinned_rows
 
         thin = self.thin
+        shift, turn, seconds = (np.zeros(3), np.zeros(3), -1.0) if thin.closing is None else thin.closing
         return thinned_rows(values, bary, tri, grads, faces, search, self._normal, rotation, sdf_pose[:3, :3],
-                            sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos)
+                            sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
+                            np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds))
 
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in

@@ -395,41 +395,54 @@ def deepest_per_cell(cells, group, values):
 
 @njit(cache=True)
 def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation, sdf_rotation, sdf_shift, cell,
-                 touching_cos, separated_cos):
+                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds):
     """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
-    contacts (the answers at most ``search``), in one pass.
+    contacts (the answers at most ``search``), in one pass: per cell, the deepest of those a simulation can use.
 
     Args:
         values (N,), bary (N, 3), tri (N, 3, 3), grads (N, 3), faces (N,): the answers (the SDF's frame).
         face_normal (F, 3): the faces' unit normals in the mesh's frame (zeros: degenerate); rotation (3, 3): the
             mesh's in the SDF's frame. sdf_rotation (3, 3), sdf_shift (3,): the SDF's pose in the world.
-        cell, touching_cos, separated_cos: the ``Thinning``'s.
+        cell, touching_cos, separated_cos: the ``Thinning``'s; closing_shift (3,), closing_turn (3,),
+            closing_seconds: its ``closing`` (u, w, seconds; seconds < 0: none).
     """
     n = values.shape[0]
     cells = np.empty((n, 3), dtype=np.int64)
-    group = np.empty(n, dtype=np.int64)
     rows = np.empty(n, dtype=np.int64)
     kept_values = np.empty(n)
+    world = np.empty(3)
     m = 0
     for i in range(n):
-        if not values[i] <= search:
+        value = values[i]
+        if not value <= search:
             continue
-        for a in range(3):  # the point in the world, its cell
-            p = (sdf_rotation[a, 0] * (bary[i, 0] * tri[i, 0, 0] + bary[i, 1] * tri[i, 1, 0] + bary[i, 2] * tri[i, 2, 0])
-                 + sdf_rotation[a, 1] * (bary[i, 0] * tri[i, 0, 1] + bary[i, 1] * tri[i, 1, 1] + bary[i, 2] * tri[i, 2, 1])
-                 + sdf_rotation[a, 2] * (bary[i, 0] * tri[i, 0, 2] + bary[i, 1] * tri[i, 1, 2] + bary[i, 2] * tri[i, 2, 2])
-                 + sdf_shift[a])
-            cells[m, a] = int(math.floor(p / cell))
         f = faces[i]
-        nx = rotation[0, 0] * face_normal[f, 0] + rotation[0, 1] * face_normal[f, 1] + rotation[0, 2] * face_normal[f, 2]
-        ny = rotation[1, 0] * face_normal[f, 0] + rotation[1, 1] * face_normal[f, 1] + rotation[1, 2] * face_normal[f, 2]
-        nz = rotation[2, 0] * face_normal[f, 0] + rotation[2, 1] * face_normal[f, 1] + rotation[2, 2] * face_normal[f, 2]
         length = math.sqrt(grads[i, 0] ** 2 + grads[i, 1] ** 2 + grads[i, 2] ** 2)
-        cos = abs(nx * grads[i, 0] + ny * grads[i, 1] + nz * grads[i, 2]) / length if length > 0 else 0.0
-        degenerate = face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0
-        facing = degenerate or cos >= (separated_cos if values[i] > 0 else touching_cos)
-        group[m] = 1 if facing else 0
+        scale = 1.0 / length if length > 0 else 0.0
+        gx, gy, gz = grads[i, 0] * scale, grads[i, 1] * scale, grads[i, 2] * scale  # the contact's normal, SDF frame
+        if not (face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0):  # a degenerate face faces
+            cos = 0.0
+            for a in range(3):
+                cos += (rotation[a, 0] * face_normal[f, 0] + rotation[a, 1] * face_normal[f, 1]
+                        + rotation[a, 2] * face_normal[f, 2]) * (gx if a == 0 else (gy if a == 1 else gz))
+            if abs(cos) < (separated_cos if value > 0 else touching_cos):
+                continue
+        for a in range(3):  # the point in the world
+            world[a] = (sdf_rotation[a, 0] * (bary[i, 0] * tri[i, 0, 0] + bary[i, 1] * tri[i, 1, 0] + bary[i, 2] * tri[i, 2, 0])
+                        + sdf_rotation[a, 1] * (bary[i, 0] * tri[i, 0, 1] + bary[i, 1] * tri[i, 1, 1] + bary[i, 2] * tri[i, 2, 1])
+                        + sdf_rotation[a, 2] * (bary[i, 0] * tri[i, 0, 2] + bary[i, 1] * tri[i, 1, 2] + bary[i, 2] * tri[i, 2, 2])
+                        + sdf_shift[a])
+        if value > 0 and closing_seconds >= 0:  # separated: kept where the bodies close it within the time
+            closing = 0.0
+            for a in range(3):
+                b, c = (a + 1) % 3, (a + 2) % 3
+                velocity = closing_shift[a] + closing_turn[b] * world[c] - closing_turn[c] * world[b]  # u + w x p
+                closing += velocity * (sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz)
+            if not closing * closing_seconds >= value:
+                continue
+        for a in range(3):
+            cells[m, a] = int(math.floor(world[a] / cell))
         rows[m] = i
-        kept_values[m] = values[i]
+        kept_values[m] = value
         m += 1
-    return rows[deepest_per_cell(cells[:m], group[:m], kept_values[:m])]
+    return rows[deepest_per_cell(cells[:m], np.zeros(m, dtype=np.int64), kept_values[:m])]

@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -498,6 +498,7 @@ class World:
             if pair.kind == "segment":
                 contacts, faces_world = segments.get(id(pair), (None, None))
             else:
+                self._give_closing(pair, data, velocities)
                 contacts, faces_world = self._collide(pair, data, margin)
             usable = self._usable(pair, data, contacts, faces_world, velocities)
             if usable is not None:
@@ -537,6 +538,16 @@ class World:
         lever = reach + float(np.linalg.norm(data.xpos[pair.sdf_body.body] - data.xpos[pair.body]))
         linear = float(np.linalg.norm(a[:3] - b[:3]))
         return (linear + reach * float(np.linalg.norm(a[3:])) + lever * float(np.linalg.norm(b[3:]))) * self.model.opt.timestep
+
+    def _give_closing(self, pair: Pair, data, velocities: dict) -> None:
+        """Give the pair's proxy collider, where it thins its contacts, this step's relative motion of the two bodies
+        (``Thinning.closing``: what :func:`closing_in_time` tests in :meth:`_usable`)."""
+        collider = getattr(pair.collider, "proxy_collider", None)
+        if collider is None or collider.thin is None:
+            return
+        a, b = velocities[pair.sdf_body.body], velocities[pair.body]
+        shift = a[:3] - b[:3] - np.cross(a[3:], data.xpos[pair.sdf_body.body]) + np.cross(b[3:], data.xpos[pair.body])
+        collider.thin = replace(collider.thin, closing=(shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR))
 
     def _collide(self, pair: Pair, data, margin: float):
         """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a mesh or plane pair, or (None, None)."""
