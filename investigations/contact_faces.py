@@ -6,7 +6,7 @@ build) with ``zoo.collide`` from scratch at that pose, and prints per pair: the 
 minimum lies within the margin (the contacts any method must find), their depths and their widths
 (twice the area over the longest edge) and lengths. A profile of what a step costs, not a timing:
 
-    python -m investigations contact_faces --scene mug-rack --steps 80
+    python -m investigations contact_faces --scene mug-rack --steps 80 [--refine 2]
 """
 
 from __future__ import annotations
@@ -34,11 +34,18 @@ def _mm_percentiles(values: np.ndarray) -> dict:
     return {f"p{q}": round(1e3 * float(np.percentile(values, q)), 4) for q in PERCENTILES} if len(values) else {}
 
 
-def simulated(name: str, steps: int):
-    """Scenario ``name``'s simulation (its scene, control and default settings) after ``steps`` steps."""
-    from sdfzoo.benches.sim_scenarios import advance, start
+def simulated(name: str, steps: int, refine: int = 0):
+    """Scenario ``name``'s simulation (its scene, control and default settings) after ``steps`` steps, its fixed
+    meshes subdivided ``refine`` times first (4x their faces each, as ``investigations proxy --refine``)."""
+    import zoo.sim
+    from investigations.proxy import refine_fixed_meshes
+    from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES, advance
 
-    scenario, sim, extra = start(name)
+    scenario = SCENARIOS[name]
+    sim = zoo.sim.load_scene(SCENES / scenario.scene)
+    refine_fixed_meshes(sim, refine)
+    sim.build()
+    extra = scenario.prepare(sim) or {}
     for _ in range(steps):
         advance(scenario, sim, extra)
     return sim
@@ -58,9 +65,9 @@ def faces_within_margin(sim, sdf_name: str, mesh_name: str):
                        mesh_pose=torch.from_numpy(pair.surface_pose(sim.data)), margin=sim.margin, method="amortized")
 
 
-def contact_faces(name: str, steps: int) -> list[dict]:
+def contact_faces(name: str, steps: int, refine: int = 0) -> list[dict]:
     """Per mesh pair of scenario ``name`` after ``steps`` steps: the faces within the margin (see the module docstring)."""
-    sim = simulated(name, steps)
+    sim = simulated(name, steps, refine)
     rows = []
     for pair in sim.world.pairs:
         sdf_name, mesh_name = pair.sdf_body.name, sim.model.body(pair.body).name
@@ -71,7 +78,7 @@ def contact_faces(name: str, steps: int) -> list[dict]:
         refined = pair.refined
         widths, lengths = face_shapes(refined.vertices[refined.faces[faces]])
         rows.append({
-            "pair": [sdf_name, mesh_name], "step": steps, "margin_mm": 1e3 * sim.margin,
+            "pair": [sdf_name, mesh_name], "step": steps, "refine": refine, "margin_mm": 1e3 * sim.margin,
             "mesh_faces": len(refined.faces), "own_faces": len(pair.faces),
             "within_margin": len(faces), "own_faces_within_margin": len(np.unique(refined.origin[faces])),
             "depth_mm": _mm_percentiles(np.asarray(contacts.depths)),
@@ -86,13 +93,14 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=sorted(SCENARIOS), required=True)
     parser.add_argument("--steps", type=int, default=80, help="steps simulated before counting (default 80)")
+    parser.add_argument("--refine", type=int, default=0, help="subdivide the fixed meshes this many times (4x faces each)")
     parser.add_argument("--out", default="out/contact-faces.json")
     args = parser.parse_args(argv)
     from sdfzoo.benches.sim_scenarios import require_meshes
 
     require_meshes()
     torch.set_num_threads(1)
-    rows = contact_faces(args.scene, args.steps)
+    rows = contact_faces(args.scene, args.steps, args.refine)
     for row in rows:
         print(json.dumps(row))
-    write_report(args.out, {"scenario": args.scene, "steps": args.steps, "rows": rows}, __name__, argv)
+    write_report(args.out, {"scenario": args.scene, "steps": args.steps, "refine": args.refine, "rows": rows}, __name__, argv)

@@ -18,8 +18,7 @@ the faces (``kernel="numpy"``, the reference the compiled loop is tested against
    steps (``WARM_SEARCH_STEPS`` for a warm one), each a line search to where the steepest descent inside the
    triangle leaves it (two reads), leaving the search as the gap or the screen settles them. A point out of the
    proxy's band takes no step: there the read is a bound, f(c) - L |p - c| from its brick's centre c, and its
-   gradient the one at c, so a step along it does not follow the values read (in a Mug-Rack step on the 16x rack,
-   of some 2,200 such steps 50 found a lower point and none reached the band, docs/proxy.md).
+   gradient the one at c, so a step along it does not follow the values read (docs/proxy.md).
 4. **Contacts.** The faces whose proxy minimum is within the margin plus the proxy's ``error_bound`` are the
    proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
    reduces them to a manifold first): its value and gradient at the proxy's minimiser; where the SDF's Frank-Wolfe
@@ -45,6 +44,12 @@ SDF (:class:`_HeldBounds`). A face (a whole cluster) whose bound, less L times i
 search margin is passed over with no read: the faces far from the contacts cost nothing step after step, and the
 work goes where the bounds run out. A search that cannot move from a face's corner or along a needle moves towards
 Frank-Wolfe's vertex instead, so that such faces settle (and are held) rather than stay open.
+
+Thinning (``thin``, with ``deferred``: what ``zoo.sim`` sets). A simulation keeps, of a pair's contacts, at most
+the deepest per cell of its reduction's grid among those its filters let through: a call then returns only those
+(:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh, with more faces within the margin,
+does not cost the caller more rows. Inside, the faces lie cluster after cluster and the vertices in the order the
+faces first use them (``_face_id`` maps back to the mesh's faces): a cluster's faces are neighbours in memory.
 
 Why clusters and not a carried bound per vertex (what :class:`zoo.CoherentCollider` does on the SDF itself): on
 the proxy a read costs what the bookkeeping of a carried bound would, so one read per cluster and per face near it
