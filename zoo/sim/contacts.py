@@ -29,6 +29,7 @@ from ..geometry import edge_lengths, faces_touching_box
 PATCH_COS = math.cos(math.radians(20.0))  # faces within 20 degrees of a patch's deepest contact's face join it
 FLAT_COS = math.cos(math.radians(5.0))  # a patch's extra points: SDF normals within 5 degrees of its deepest's
 MAX_PER_PATCH = 4
+MERGE_CELL = 0.5  # the reduction keeps the deepest contact per cell of this fraction of its merge distance
 REFINE_CELLS = 4  # a refined triangle's edge is at most the SDF's median extent / REFINE_CELLS
 
 
@@ -302,7 +303,7 @@ def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray,
     if len(depths) == 0:
         return np.zeros(0, dtype=np.int64)
     order = np.argsort(depths, kind="stable")  # deepest first
-    keys = np.floor(points[order] / (0.5 * merge_tol)).astype(np.int64)
+    keys = np.floor(points[order] / (MERGE_CELL * merge_tol)).astype(np.int64)
     _, first = np.unique(_cell_index(keys), return_index=True)  # the deepest of each cell
     candidates = order[np.sort(first)]
     kept = []

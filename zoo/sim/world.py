@@ -45,6 +45,7 @@ from ..methods import method_for
 from ..validation import non_negative_float
 from .contacts import (
     GRAZING_COS,
+    MERGE_CELL,
     REFINE_CELLS,
     SEPARATED_COS,
     add_contacts,
@@ -350,7 +351,7 @@ class World:
             if self.reduce and pair.collider.proxy_collider is not None:  # only what the reduction can keep comes back
                 from ..proxy_collider import Thinning
 
-                pair.collider.proxy_collider.thin = Thinning(0.5 * self._merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
+                pair.collider.proxy_collider.thin = Thinning(MERGE_CELL * self._merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
             pair.refined = RefinedMesh(vertices, faces, origin, face_normals(vertices[faces]))
         return pair
 
