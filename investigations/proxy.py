@@ -239,6 +239,7 @@ def simulate(scenario: str, steps: int | None, ways: list[str] | None = None, re
             "collide_ms": {"median": 1e3 * float(np.median([r.collide_s for r in log])),
                            "mean": 1e3 * float(np.mean([r.collide_s for r in log]))},
             "contacts_per_step": float(np.mean([r.contacts for r in log])),
+            "found_per_step": float(np.mean([r.raw_contacts for r in log])),  # the colliders returned, before filters
             "max_penetration_mm": 1e3 * max((r.max_penetration for r in log), default=0.0),
             "end_position": end[way][:3, 3].tolist(),
             "end_from_full_mm": 1e3 * float(np.linalg.norm(end[way][:3, 3] - end[reference][:3, 3])),
