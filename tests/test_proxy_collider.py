@@ -214,21 +214,20 @@ def test_pairs_on_one_sdf_ask_it_together():
 
 
 def test_deepest_per_cell_against_a_dictionary():
-    """zoo.proxy_kernel.deepest_per_cell against a dictionary of each (cell, group)'s least value, the first of
-    equals: many rows per cell, negative cells, ties."""
+    """zoo.proxy_kernel.deepest_per_cell against a dictionary of each cell's least value, the first of equals: many
+    rows per cell, negative cells, ties."""
     from zoo.proxy_kernel import deepest_per_cell
 
     rng = np.random.default_rng(5)
     for n in (0, 1, 7, 3000):
         cells = rng.integers(-4, 4, size=(n, 3))
-        group = rng.integers(0, 2, size=n)
         values = rng.integers(0, 20, size=n) * 1e-4  # ties
         best = {}
         for i in range(n):
-            key = (*cells[i].tolist(), int(group[i]))
+            key = tuple(cells[i].tolist())
             if key not in best or values[i] < values[best[key]]:
                 best[key] = i
-        assert deepest_per_cell(cells, group, values).tolist() == sorted(best.values())
+        assert deepest_per_cell(cells, values).tolist() == sorted(best.values())
 
 
 def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use():

@@ -365,9 +365,9 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
 
 
 @njit(cache=True)
-def deepest_per_cell(cells, group, values):
-    """Of the rows (N,) sharing a cell ``cells`` (N, 3) int64 and a ``group`` (N,) int64, the one of least ``values``
-    (N,) (the first of equals): their indices (K,), ascending. One pass over an open-addressing table, where sorting
+def deepest_per_cell(cells, values):
+    """Of the rows (N,) sharing a cell ``cells`` (N, 3) int64, the one of least ``values`` (N,) (the first of
+    equals): their indices (K,), ascending. One pass over an open-addressing table, where sorting
     the rows by cell would cost more than the rows' other work."""
     n = values.shape[0]
     size = 16
@@ -376,14 +376,14 @@ def deepest_per_cell(cells, group, values):
     mask = size - 1
     slot_row = np.full(size, -1, dtype=np.int64)
     for i in range(n):
-        h = (cells[i, 0] * 73856093) ^ (cells[i, 1] * 19349663) ^ (cells[i, 2] * 83492791) ^ (group[i] * 2654435761)
+        h = (cells[i, 0] * 73856093) ^ (cells[i, 1] * 19349663) ^ (cells[i, 2] * 83492791)
         s = h & mask
         while True:
             r = slot_row[s]
             if r < 0:
                 slot_row[s] = i
                 break
-            if cells[r, 0] == cells[i, 0] and cells[r, 1] == cells[i, 1] and cells[r, 2] == cells[i, 2] and group[r] == group[i]:
+            if cells[r, 0] == cells[i, 0] and cells[r, 1] == cells[i, 1] and cells[r, 2] == cells[i, 2]:
                 if values[i] < values[r]:
                     slot_row[s] = i
                 break
@@ -421,10 +421,10 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
         scale = 1.0 / length if length > 0 else 0.0
         gx, gy, gz = grads[i, 0] * scale, grads[i, 1] * scale, grads[i, 2] * scale  # the contact's normal, SDF frame
         if not (face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0):  # a degenerate face faces
-            cos = 0.0
-            for a in range(3):
-                cos += (rotation[a, 0] * face_normal[f, 0] + rotation[a, 1] * face_normal[f, 1]
-                        + rotation[a, 2] * face_normal[f, 2]) * (gx if a == 0 else (gy if a == 1 else gz))
+            # the face's normal in the SDF's frame is rotation @ n, so its cosine with g is n . (rotation^T g)
+            cos = (face_normal[f, 0] * (rotation[0, 0] * gx + rotation[1, 0] * gy + rotation[2, 0] * gz)
+                   + face_normal[f, 1] * (rotation[0, 1] * gx + rotation[1, 1] * gy + rotation[2, 1] * gz)
+                   + face_normal[f, 2] * (rotation[0, 2] * gx + rotation[1, 2] * gy + rotation[2, 2] * gz))
             if abs(cos) < (separated_cos if value > 0 else touching_cos):
                 continue
         for a in range(3):  # the point in the world
@@ -445,4 +445,4 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
         rows[m] = i
         kept_values[m] = value
         m += 1
-    return rows[deepest_per_cell(cells[:m], np.zeros(m, dtype=np.int64), kept_values[:m])]
+    return rows[deepest_per_cell(cells[:m], kept_values[:m])]
