@@ -37,15 +37,10 @@ def _mm_percentiles(values: np.ndarray) -> dict:
 def simulated(name: str, steps: int, refine: int = 0):
     """Scenario ``name``'s simulation (its scene, control and default settings) after ``steps`` steps, its fixed
     meshes subdivided ``refine`` times first (4x their faces each, as ``investigations proxy --refine``)."""
-    import zoo.sim
-    from investigations.proxy import refine_fixed_meshes
-    from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES, advance
+    from investigations.proxy import start_refined
+    from sdfzoo.benches.sim_scenarios import advance
 
-    scenario = SCENARIOS[name]
-    sim = zoo.sim.load_scene(SCENES / scenario.scene)
-    refine_fixed_meshes(sim, refine)
-    sim.build()
-    extra = scenario.prepare(sim) or {}
+    scenario, sim, extra, _ = start_refined(name, refine)
     for _ in range(steps):
         advance(scenario, sim, extra)
     return sim

@@ -201,22 +201,32 @@ def refine_fixed_meshes(sim, times: int) -> int:
     return faces
 
 
+def start_refined(name: str, refine: int = 0, **options):
+    """(the Scenario, its Simulation built, what its ``prepare`` computed, the faces its fixed meshes hold) of scenario
+    ``name``, its scene loaded with ``options`` (``zoo.sim.load_scene``'s) and its fixed meshes subdivided ``refine``
+    times before the build (4x their faces each: :func:`refine_fixed_meshes`)."""
+    import zoo.sim
+    from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES
+
+    spec = SCENARIOS[name]
+    sim = zoo.sim.load_scene(SCENES / spec.scene, **options)
+    fixed_faces = refine_fixed_meshes(sim, refine)
+    sim.build()  # the proxy is baked or read here
+    return spec, sim, spec.prepare(sim) or {}, fixed_faces
+
+
 def simulate(scenario: str, steps: int | None, ways: list[str] | None = None, refine: int = 0) -> dict:
     """``scenario`` run the ways of ``WAYS`` named (all by default) in turn, step by step (see the module docstring);
     the end poses are measured from the first way's (the full path's, when it runs). ``refine``: the fixed meshes
     subdivided that many times (4x their faces each)."""
-    import zoo.sim
-    from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES, advance
+    from sdfzoo.benches.sim_scenarios import advance
 
-    spec = SCENARIOS[scenario]
     runs = {}
     for way, options in WAYS.items():
         if ways and way not in ways:
             continue
-        sim = zoo.sim.load_scene(SCENES / spec.scene, **options)
-        fixed_faces = refine_fixed_meshes(sim, refine)
-        sim.build()  # the proxy is baked or read here, before the timed steps
-        runs[way] = {"sim": sim, "extra": spec.prepare(sim) or {}, "trace": [], "wall": []}
+        spec, sim, extra, fixed_faces = start_refined(scenario, refine, **options)  # built before the timed steps
+        runs[way] = {"sim": sim, "extra": extra, "trace": [], "wall": []}
     reference = next(iter(runs))
     first = runs[reference]["sim"]
     steps = int(round(first.seconds / first.dt)) if steps is None else steps

@@ -26,14 +26,10 @@ def end_position(scenario: str, way: str, shift: np.ndarray) -> np.ndarray:
     """The moving body's end position (3,) (m) of ``scenario`` run ``way``, its start shifted by ``shift`` (3,) (m)."""
     import mujoco
 
-    import zoo.sim
-    from investigations.proxy import WAYS
-    from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES, advance
+    from investigations.proxy import WAYS, start_refined
+    from sdfzoo.benches.sim_scenarios import advance
 
-    spec = SCENARIOS[scenario]
-    sim = zoo.sim.load_scene(SCENES / spec.scene, **WAYS[way])
-    sim.build()
-    extra = spec.prepare(sim) or {}
+    spec, sim, extra, _ = start_refined(scenario, **WAYS[way])
     moving = next(name for name, body in sim.bodies.items() if body.joint != "fixed")
     joint = sim.model.body(moving).jntadr[0]
     start = sim.model.jnt_qposadr[joint]

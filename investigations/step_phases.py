@@ -70,15 +70,10 @@ def timed(spent: dict):
 
 def run_once(name: str, refine: int, spent: dict | None) -> list[dict]:
     """Scenario ``name`` run for its scene's seconds; with ``spent``, each step's phases (ms) as a list of dicts."""
-    import zoo.sim
-    from investigations.proxy import refine_fixed_meshes
-    from sdfzoo.benches.sim_scenarios import SCENARIOS, SCENES, advance
+    from investigations.proxy import start_refined
+    from sdfzoo.benches.sim_scenarios import advance
 
-    spec = SCENARIOS[name]
-    sim = zoo.sim.load_scene(SCENES / spec.scene)
-    refine_fixed_meshes(sim, refine)
-    sim.build()
-    extra = spec.prepare(sim) or {}
+    spec, sim, extra, _ = start_refined(name, refine)
     steps = []
     for _ in range(int(round(sim.seconds / sim.dt))):
         if spent is not None:
