@@ -75,7 +75,7 @@ def contact_faces(name: str, steps: int, refine: int = 0) -> list[dict]:
         rows.append({
             "pair": [sdf_name, mesh_name], "step": steps, "refine": refine, "margin_mm": 1e3 * sim.margin,
             "mesh_faces": len(refined.faces), "own_faces": len(pair.faces),
-            "within_margin": len(faces), "own_faces_within_margin": len(np.unique(refined.origin[faces])),
+            "within_margin": len(faces), "own_faces_within_margin": len(refined.cover.under(faces)),
             "depth_mm": _mm_percentiles(np.asarray(contacts.depths)),
             "width_mm": _mm_percentiles(widths), "longest_edge_mm": _mm_percentiles(lengths),
         })

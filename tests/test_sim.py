@@ -357,3 +357,39 @@ def test_pose_and_velocity_build_the_model_on_first_use():
     sim.add_body("ball", sdf=zoo.Sphere(radius=0.05), mass=1.0, pose=np.array(
         [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1]], dtype=float))
     assert np.allclose(sim.pose("ball")[:3, 3], [0.1, 0.0, 0.3]) and np.allclose(sim.velocity("ball"), 0.0)
+
+
+def test_a_finer_flat_ground_costs_the_pair_no_more_faces_and_contacts_name_its_own_faces():
+    """A box resting on a ground of 2 triangles, and on the same ground subdivided 3 times (128 triangles): the
+    pair's mesh is the same size (zoo.sim.flat_regions), the box settles alike, and each contact names a triangle
+    of the ground given that holds its point (brute force over every triangle)."""
+    import trimesh
+
+    plane = sim_check.two_triangle_plane(0.5)
+    fine = tuple(np.asarray(a) for a in trimesh.remesh.subdivide(*trimesh.remesh.subdivide(*trimesh.remesh.subdivide(*plane))))
+    runs = {}
+    for name, ground in (("coarse", plane), ("fine", fine)):
+        sim = zoo.sim.Simulation(dt=sim_check.DT, method="fw")
+        pose = np.eye(4)
+        pose[2, 3] = sim_check.HALF
+        sim.add_body("box", sdf=zoo.Box(half_extents=(sim_check.HALF,) * 3), mass=1.0, pose=pose)
+        sim.add_body("ground", mesh=ground, joint="fixed")
+        sim.run(0.2)
+        runs[name] = sim
+    assert len(fine[1]) == 128
+    sizes = [len(sim.world.pairs[0].refined.faces) for sim in runs.values()]
+    assert sizes[0] == sizes[1]
+    assert np.allclose(runs["coarse"].pose("box"), runs["fine"].pose("box"), atol=1e-4)
+    contacts = runs["fine"].contacts
+    assert len(contacts) > 0
+    v, f = fine
+    tri = v[f[contacts.triangles.numpy()]]
+    points = contacts.points.numpy().astype(np.float64)
+    # the mesh point of a contact lies in its named triangle: in the ground's plane, inside its edges
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    d = points - tri[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    s = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
+    t = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
+    assert (np.abs(points[:, 2]) < 1e-6).all()
+    assert ((s >= -1e-6) & (t >= -1e-6) & (s + t <= 1 + 1e-6)).all()

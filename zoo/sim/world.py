@@ -73,6 +73,7 @@ from .geoms import (
     native_colliders,
     partner_geoms,
 )
+from .flat_regions import FaceCover, merge_flat_regions
 from .surface import CONTACT_RESOLUTION, surface_mesh
 
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
@@ -119,14 +120,24 @@ class SdfBody:
 
 @dataclass
 class RefinedMesh:
-    """A pair's surface with its large triangles split once (:func:`zoo.sim.contacts.refine_to_size`), in the
-    frame of the surface it comes from: vertices (V, 3), faces (F, 3), origin (F,) the surface's own face each
-    face comes from, normals (F, 3) unit face normals."""
+    """A pair's surface at the SDF's resolution, made once: its flat regions' needless vertices removed
+    (:func:`zoo.sim.flat_regions.merge_flat_regions`), then its large triangles split
+    (:func:`zoo.sim.contacts.refine_to_size`), in the frame of the surface it comes from: vertices (V, 3), faces
+    (F, 3), cover (:class:`zoo.sim.flat_regions.FaceCover`) the surface's own faces under each face, normals (F, 3)
+    unit face normals."""
 
     vertices: np.ndarray
     faces: np.ndarray
-    origin: np.ndarray
+    cover: FaceCover
     normals: np.ndarray
+
+    def surface_faces(self, triangles, bary) -> torch.Tensor:
+        """(K,) int64 the surface's own face that holds each point ``bary`` (K, 3) of the faces ``triangles`` (K,)."""
+        triangles, bary = np.asarray(triangles, dtype=np.int64), np.asarray(bary, dtype=np.float64)
+        if self.cover.one_each:
+            return torch.as_tensor(self.cover.members[triangles])
+        points = np.einsum("kv,kvc->kc", bary, self.vertices[self.faces[triangles]])
+        return torch.as_tensor(self.cover.input_faces(triangles, points))
 
 
 @dataclass
@@ -342,9 +353,11 @@ class World:
             return pair
         pair.vertices, pair.faces = surface
         pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
-        refined = refine_to_size(pair.vertices, pair.faces, sdf_body.max_edge if self.refine else math.inf, PREREFINE_MAX_FACES)
+        merged, cover = merge_flat_regions(pair.vertices, pair.faces) if self.refine else (pair.faces, None)
+        refined = refine_to_size(pair.vertices, merged, sdf_body.max_edge if self.refine else math.inf, PREREFINE_MAX_FACES)
         if refined is not None:
             vertices, faces, origin = refined
+            cover = (cover or FaceCover.identity(pair.vertices, pair.faces)).take(origin, vertices[faces])
             mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
             pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
                                                  coherence=self.coherence, proxy=self._proxy_for(sdf_body), deferred=True)
@@ -352,7 +365,7 @@ class World:
                 from ..proxy_collider import Thinning
 
                 pair.collider.proxy_collider.thin = Thinning(MERGE_CELL * self._merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
-            pair.refined = RefinedMesh(vertices, faces, origin, face_normals(vertices[faces]))
+            pair.refined = RefinedMesh(vertices, faces, cover, face_normals(vertices[faces]))
         return pair
 
     def _proxy_for(self, sdf_body: SdfBody):
@@ -564,7 +577,8 @@ class World:
             return self._collide_refining_near(pair, t_sdf, t_other, margin)
         contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
         faces_world = pair.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
-        contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]  # back to the surface's own faces
+        if not getattr(pair.collider, "deferred", False):  # a deferred pair's are named when the SDF answers them
+            contacts.triangles = pair.refined.surface_faces(contacts.triangles, contacts.bary)
         return contacts, faces_world
 
     def _usable(self, pair: Pair, data, contacts, faces_world, velocities: dict):
@@ -606,7 +620,7 @@ class World:
         answers = exact_contacts_together([(found[i][0].collider.proxy_collider, found[i][2]) for i in deferred])
         for i, contacts in zip(deferred, answers):
             pair = found[i][0]
-            contacts.triangles = torch.as_tensor(pair.refined.origin)[contacts.triangles]
+            contacts.triangles = pair.refined.surface_faces(contacts.triangles, contacts.bary)
             found[i] = (pair, contacts, np.arange(len(contacts)), as_numpy(contacts))
         return found
 
