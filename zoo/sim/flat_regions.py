@@ -16,6 +16,7 @@ still name the faces of the mesh given.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,9 +98,12 @@ class FaceCover:
         return self.members[rows[first]]
 
 
-def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, FaceCover]:
+def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray, max_width: float = math.inf
+                       ) -> tuple[np.ndarray, FaceCover]:
     """The mesh (vertices (V, 3), faces (F, 3)) with the vertices its flat parts do not need removed (see the
-    module docstring).
+    module docstring), where the faces that replace a vertex's are no wider than ``max_width`` (m; a face's width:
+    twice its area over its longest edge). A simulation passes half its reduction's cell: the reduction keeps at most
+    one contact per cell, a face gives one at most, so faces that narrow leave a flat contact patch its contacts.
 
     Returns:
         faces (F', 3) on the same vertices (orientation kept), and the :class:`FaceCover` of the input's faces
@@ -111,7 +115,7 @@ def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndar
     candidates = _vertices_between_flat_faces(vertices, faces, tolerance)
     if not len(candidates):
         return faces, FaceCover.identity(vertices, faces)
-    return _Decimation(vertices, faces, tolerance).run(candidates)
+    return _Decimation(vertices, faces, tolerance, max_width).run(candidates)
 
 
 def _tolerance(vertices: np.ndarray) -> float:
@@ -126,12 +130,12 @@ class _Decimation:
     from rim vertex a to rim vertex b, where v lies on the segment ab (the whole fan, open, or one side of a line
     through v, closed) or the whole closed fan, whose corners lie within the tolerance of one plane, is replaced by
     an ear-clipping triangulation of its rim (a star-shaped polygon): one face fewer (two, closed), where the fan
-    has at most ``MAX_LINK`` faces and the areas agree. The faces on the other side of the line keep v (a
+    has at most ``MAX_LINK`` faces, the areas agree and no new face is wider than ``max_width``. The faces on the other side of the line keep v (a
     T-junction, which no collision query minds) until they can lose it too. The rim's vertices and v are then
     looked at again."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, tolerance: float):
-        self.vertices, self.input, self.tolerance = vertices, faces, tolerance
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, tolerance: float, max_width: float):
+        self.vertices, self.input, self.tolerance, self.max_width = vertices, faces, tolerance, max_width
         self.faces = [tuple(int(i) for i in face) for face in faces]
         self.cover = [[i] for i in range(len(faces))]
         self.alive = [True] * len(faces)
@@ -203,10 +207,13 @@ class _Decimation:
         if ears is None:
             return False
         new = np.asarray(polygon)[ears]
-        rim = self.vertices[polygon]
+        rim, corners = self.vertices[polygon], self.vertices[new]
         perimeter = float(np.linalg.norm(rim - np.roll(rim, 1, axis=0), axis=1).sum())
-        if abs(_areas(self.vertices[new]).sum() - _areas(old).sum()) > self.tolerance * perimeter:
+        areas = _areas(corners)
+        if abs(areas.sum() - _areas(old).sum()) > self.tolerance * perimeter:
             return False
+        if (2 * areas > self.max_width * np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)).any():
+            return False  # a face wider than max_width
         cover = sorted({i for f in faces for i in self.cover[f]})
         for f in faces:
             self.alive[f] = False
