@@ -117,3 +117,21 @@ def test_fine_flat_grid_on_a_cylinder_keeps_the_curved_sides():
     merged, cover = merge_flat_regions(v, f)
     assert len(merged) <= len(cylinder.faces)
     _check_same_surface(v, f, merged, cover, np.random.default_rng(3))
+
+
+def test_merged_faces_stay_within_the_width_asked():
+    """A 1 m square floor as a 16 x 16 grid: with no bound it comes back to 2 faces; bounded at 0.1 m, every merged
+    face is at most 0.1 m wide (twice its area over its longest edge) and the floor keeps more faces, still fewer
+    than the grid's."""
+    g = np.linspace(-0.5, 0.5, 17)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    index = np.arange(x.size).reshape(17, 17)
+    a, b, c, d = index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel(), index[:-1, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)])
+    assert len(merge_flat_regions(v, f)[0]) == 2
+    merged, cover = merge_flat_regions(v, f, max_width=0.1)
+    tri = v[merged]
+    widths = 2 * _areas(tri) / np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    assert widths.max() <= 0.1 + 1e-12 and 2 < len(merged) < len(f)
+    _check_same_surface(v, f, merged, cover, np.random.default_rng(4))

@@ -1,17 +1,15 @@
-"""A mesh's flat regions with the vertices they do not need removed: a pair's mesh at the SDF's resolution.
+"""A mesh's flat parts with the vertices they do not need removed: a pair's mesh at the SDF's resolution.
 
 A simulation cuts a mesh's faces longer than its SDF's ``max_edge`` once, at build
 (:func:`zoo.sim.contacts.refine_to_size`), so that every mesh looks alike to the SDF near it. A mesh tessellated
 finer than that where it is flat (a CAD export's fans of slivers, a subdivided mesh) would otherwise put more faces
 within the contact margin for the same surface: each costs the narrow phase a search, and the reduction keeps the
-same contacts in the end. :func:`merge_flat_regions` joins the edge-adjacent faces that lie in one plane (within
-``ROUNDING`` of its largest coordinate: the same surface up to float32 rounding) into regions, and inside each removes the
-vertices the region's shape does not need, one at a time: one inside it whose fan of faces has at most ``MAX_LINK``
-faces, and one on its boundary where the boundary runs straight through it; the fan's rim is cut anew by ear
-clipping, into fewer faces over the same points (checked by their areas). Corners, curved parts and vertices
-shared with other regions' faces otherwise stay. A mesh subdivided k times comes back to the faces it was
-subdivided from. :class:`FaceCover` maps a point on a new face back to the input's face that holds it, so contacts
-still name the faces of the mesh given.
+same contacts in the end. :func:`merge_flat_regions` removes, one at a time, each vertex whose fan of faces (all of
+it, or the faces on one side of a line through it) lies in one plane, within ``ROUNDING`` of the mesh's largest
+coordinate (the same surface up to float32 rounding), and cuts the fan's rim anew by ear clipping into fewer faces
+over the same points (checked by their areas). Corners and curved parts stay. A mesh subdivided k times comes back
+to the faces it was subdivided from. :class:`FaceCover` maps a point on a new face back to the input's face that
+holds it, so contacts still name the faces of the mesh given.
 """
 
 from __future__ import annotations
@@ -27,7 +25,7 @@ from ..geometry import face_normals
 # reach sdfzoo through MuJoCo as float32, rounded by up to 6e-8 of that, so a subdivided face's pieces are flat to
 # about that, and no more.
 ROUNDING = 2e-7
-MAX_LINK = 12  # a vertex with more faces than this in its region stays: its rim's ears would be long slivers
+MAX_LINK = 12  # a vertex with more faces than this around it stays: its rim's ears would be long slivers
 
 
 @dataclass
@@ -130,9 +128,9 @@ class _Decimation:
     from rim vertex a to rim vertex b, where v lies on the segment ab (the whole fan, open, or one side of a line
     through v, closed) or the whole closed fan, whose corners lie within the tolerance of one plane, is replaced by
     an ear-clipping triangulation of its rim (a star-shaped polygon): one face fewer (two, closed), where the fan
-    has at most ``MAX_LINK`` faces, the areas agree and no new face is wider than ``max_width``. The faces on the other side of the line keep v (a
-    T-junction, which no collision query minds) until they can lose it too. The rim's vertices and v are then
-    looked at again."""
+    has at most ``MAX_LINK`` faces, the areas agree and no new face is wider than ``max_width``. The faces on the
+    other side of the line keep v (a T-junction, which no collision query minds) until they can lose it too. The
+    rim's vertices and v are then looked at again."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, tolerance: float, max_width: float):
         self.vertices, self.input, self.tolerance, self.max_width = vertices, faces, tolerance, max_width
@@ -157,7 +155,7 @@ class _Decimation:
         rows = [i for i, alive in enumerate(self.alive) if alive]
         faces = np.asarray([self.faces[i] for i in rows], dtype=np.int64).reshape(-1, 3)
         cover = FaceCover.from_lists(self.vertices, self.input, [self.cover[i] for i in rows])
-        return faces, cover.take(np.arange(len(faces)), self.vertices[faces])  # a region's faces, less those far
+        return faces, cover.take(np.arange(len(faces)), self.vertices[faces])  # the faces merged into each, less those far from it
 
     def _remove(self, v: int) -> list[int]:
         """Remove ``v`` from a flat run of its fan (see the class docstring); the vertices to look at again, or []."""

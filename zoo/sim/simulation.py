@@ -79,8 +79,8 @@ class Simulation:
         coherence: carry each pair's bounds and answers from step to step (:class:`zoo.CoherentCollider`);
             False collides every pair from scratch with ``zoo.collide``.
         reduce: reduce contacts to a manifold per patch (False: every contact, for comparison).
-        refine: split mesh triangles larger than a quarter of the SDF once, at build (False: the mesh as
-            given).
+        refine: split mesh triangles larger than a quarter of the SDF, and remove the vertices a mesh's flat parts
+            do not need, once, at build (``zoo.sim.flat_regions``; False: the mesh as given).
         proxy: with ``coherence`` (the default), the model shapes' mesh pairs cull and search on a narrow-band proxy,
             baked lazily where the meshes come and cached, and the shape answers only the contacts kept
             (:func:`zoo.sim.attach`'s ``proxy``; a dict names the bodies and may give their proxies). False queries the

@@ -229,7 +229,8 @@ def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e
         coherence: carry each pair's bounds and answers from step to step (``zoo.CoherentCollider``); False
             collides every pair from scratch with ``zoo.collide``.
         reduce: reduce contacts to a manifold per patch (False: every usable contact, for comparison).
-        refine: split triangles larger than a quarter of the SDF, once (False: the meshes as the model has them).
+        refine: split triangles larger than a quarter of the SDF, and remove the vertices the meshes' flat parts do
+            not need, once (``zoo.sim.flat_regions``; False: the meshes as the model has them).
         contype, conaffinity: the SDF's collision bits, as a geom's (MuJoCo's defaults).
         surfaces: {SDF body name: mesh (trimesh or (V, F), body frame)} the surface another SDF body collides
             with, instead of one extracted from its SDF.
