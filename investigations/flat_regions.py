@@ -36,7 +36,7 @@ def pair_rows(name: str, refine: int) -> list[dict]:
         if pair.refined is None:
             continue
         start = time.perf_counter()
-        merged, _ = merge_flat_regions(pair.vertices, pair.faces)
+        merged, _ = merge_flat_regions(pair.vertices, pair.faces, sim.world.flat_width(pair.sdf_body))
         seconds = time.perf_counter() - start
         area = _area(pair.vertices, pair.faces)
         rows.append({

@@ -357,7 +357,7 @@ class World:
             return pair
         pair.vertices, pair.faces = surface
         pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
-        merged, cover = (merge_flat_regions(pair.vertices, pair.faces, FLAT_WIDTH_CELLS * MERGE_CELL * self._merge_distance(sdf_body))
+        merged, cover = (merge_flat_regions(pair.vertices, pair.faces, self.flat_width(sdf_body))
                          if self.refine else (pair.faces, None))
         refined = refine_to_size(pair.vertices, merged, sdf_body.max_edge if self.refine else math.inf, PREREFINE_MAX_FACES)
         if refined is not None:
@@ -605,6 +605,11 @@ class World:
             keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep],
                                         merge_tol=self._merge_distance(sdf_body))]
         return contacts, keep, (points, depths, normals)
+
+    @classmethod
+    def flat_width(cls, sdf_body: SdfBody) -> float:
+        """m: the widest face the flat-region pass makes for ``sdf_body``'s pairs (``FLAT_WIDTH_CELLS`` cells)."""
+        return FLAT_WIDTH_CELLS * MERGE_CELL * cls._merge_distance(sdf_body)
 
     @staticmethod
     def _merge_distance(sdf_body: SdfBody) -> float:
