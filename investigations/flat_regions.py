@@ -28,6 +28,7 @@ def _area(vertices: np.ndarray, faces: np.ndarray) -> float:
 def pair_rows(name: str, refine: int) -> list[dict]:
     """One row per mesh pair of scenario ``name`` built with its fixed meshes subdivided ``refine`` times."""
     from investigations.proxy import start_refined
+    from zoo.sim.contacts import refined_pieces
     from zoo.sim.flat_regions import merge_flat_regions
 
     _, sim, _, _ = start_refined(name, refine)
@@ -36,7 +37,8 @@ def pair_rows(name: str, refine: int) -> list[dict]:
         if pair.refined is None:
             continue
         start = time.perf_counter()
-        merged, _ = merge_flat_regions(pair.vertices, pair.faces, sim.world.flat_width(pair.sdf_body))
+        merged, _ = merge_flat_regions(pair.vertices, pair.faces, sim.world.flat_width(pair.sdf_body),
+                                       refined_pieces(pair.sdf_body.max_edge))
         seconds = time.perf_counter() - start
         area = _area(pair.vertices, pair.faces)
         rows.append({

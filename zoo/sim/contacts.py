@@ -140,6 +140,15 @@ def refine_to_size(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max
     return vertices, faces, origin
 
 
+def refined_pieces(max_edge: float):
+    """(vertices (V, 3), faces (N, 3)) -> (N,): how many faces :func:`refine_to_size` cuts each face into at
+    ``max_edge`` (what :func:`zoo.sim.flat_regions.merge_flat_regions` counts a merge's gain in)."""
+    def pieces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        return np.bincount(refine_to_size(vertices, faces, max_edge, math.inf)[2], minlength=len(faces))
+
+    return pieces
+
+
 def _ladder(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Every sliver of (vertices (V, 3), faces (F, 3)) longer than ``max_edge`` cut into strips across its length.

@@ -26,6 +26,10 @@ from ..geometry import face_normals
 # about that, and no more.
 ROUNDING = 2e-7
 MAX_LINK = 12  # a vertex with more faces than this around it stays: its rim's ears would be long slivers
+# A flat part is re-meshed only where that divides its faces by this much at least: a mesh cut finer than its
+# shape needs. Re-cutting a coarse CAD tessellation into a few fewer, longer faces costs the narrow phase more
+# than it saves (docs/sim-contacts.md).
+MIN_GAIN = 4
 
 
 @dataclass
@@ -96,12 +100,15 @@ class FaceCover:
         return self.members[rows[first]]
 
 
-def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray, max_width: float = math.inf
+def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray, max_width: float = math.inf, pieces=None
                        ) -> tuple[np.ndarray, FaceCover]:
     """The mesh (vertices (V, 3), faces (F, 3)) with the vertices its flat parts do not need removed (see the
     module docstring), where the faces that replace a vertex's are no wider than ``max_width`` (m; a face's width:
     twice its area over its longest edge). A simulation passes half its reduction's cell: the reduction keeps at most
     one contact per cell, a face gives one at most, so faces that narrow leave a flat contact patch its contacts.
+    A group of faces merged together keeps its merge only where that divides its faces by ``MIN_GAIN`` at least,
+    counted as ``pieces`` (vertices, faces (N, 3)) -> (N,) counts them: the pieces a caller cuts each face into
+    (a simulation's refinement to its SDF's size; None: one each).
 
     Returns:
         faces (F', 3) on the same vertices (orientation kept), and the :class:`FaceCover` of the input's faces
@@ -113,7 +120,7 @@ def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray, max_width: float
     candidates = _vertices_between_flat_faces(vertices, faces, tolerance)
     if not len(candidates):
         return faces, FaceCover.identity(vertices, faces)
-    return _Decimation(vertices, faces, tolerance, max_width).run(candidates)
+    return _Decimation(vertices, faces, tolerance, max_width, pieces).run(candidates)
 
 
 def _tolerance(vertices: np.ndarray) -> float:
@@ -132,8 +139,9 @@ class _Decimation:
     other side of the line keep v (a T-junction, which no collision query minds) until they can lose it too. The
     rim's vertices and v are then looked at again."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, tolerance: float, max_width: float):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, tolerance: float, max_width: float, pieces):
         self.vertices, self.input, self.tolerance, self.max_width = vertices, faces, tolerance, max_width
+        self.pieces = pieces or (lambda v, f: np.ones(len(f), dtype=np.int64))
         self.faces = [tuple(int(i) for i in face) for face in faces]
         self.cover = [[i] for i in range(len(faces))]
         self.alive = [True] * len(faces)
@@ -153,9 +161,29 @@ class _Decimation:
                     queued.add(neighbour)
                     pending.append(neighbour)
         rows = [i for i, alive in enumerate(self.alive) if alive]
-        faces = np.asarray([self.faces[i] for i in rows], dtype=np.int64).reshape(-1, 3)
-        cover = FaceCover.from_lists(self.vertices, self.input, [self.cover[i] for i in rows])
-        return faces, cover.take(np.arange(len(faces)), self.vertices[faces])  # the faces merged into each, less those far from it
+        faces, lists = self._worth_it([self.faces[i] for i in rows], [self.cover[i] for i in rows])
+        if len(faces) == len(self.input):  # no merge was worth it: the mesh as given, in its order
+            return self.input, FaceCover.identity(self.vertices, self.input)
+        cover = FaceCover.from_lists(self.vertices, self.input, lists)
+        return faces, cover.take(np.arange(len(faces)), self.vertices[faces])  # the faces merged into each, less those far
+
+    def _worth_it(self, faces: list, lists: list) -> tuple[np.ndarray, list]:
+        """The faces (F', 3) and their input faces' lists, where each group of input faces merged together
+        (joined by sharing an output face) keeps its merge only if that divides its faces, counted in ``pieces``,
+        by at least ``MIN_GAIN``; the others get their input faces back."""
+        n = len(self.input)
+        faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        pairs = np.asarray([(m[0], other) for m in lists for other in m[1:]], dtype=np.int64).reshape(-1, 2)
+        group = _components(n, pairs[:, 0], pairs[:, 1])
+        group_of_output = np.asarray([group[m[0]] for m in lists], dtype=np.int64)
+        inputs = np.bincount(group, weights=self.pieces(self.vertices, self.input), minlength=n)
+        outputs = np.bincount(group_of_output, weights=self.pieces(self.vertices, faces), minlength=n)
+        merged = np.bincount(group, minlength=n) > 1
+        kept = (outputs * MIN_GAIN <= inputs) | ~merged  # a face no merge touched is kept as it is
+        keep = kept[group_of_output]
+        restored = np.flatnonzero(~kept[group])
+        faces = np.concatenate([faces[keep], self.input[restored]])
+        return faces, [m for m, k in zip(lists, keep) if k] + [[int(i)] for i in restored]
 
     def _remove(self, v: int) -> list[int]:
         """Remove ``v`` from a flat run of its fan (see the class docstring); the vertices to look at again, or []."""
@@ -270,6 +298,19 @@ def _third(faces: np.ndarray, edge: np.ndarray) -> np.ndarray:
     """(E,) the corner of each face (E, 3) not on its edge (E, 2)."""
     off = (faces != edge[:, :1]) & (faces != edge[:, 1:])
     return faces[np.arange(len(faces)), off.argmax(axis=1)]
+
+
+def _components(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) the least node of each node's connected component, the edges a (E,) - b (E,)."""
+    label = np.arange(n)
+    while True:
+        low = np.minimum(label[a], label[b])
+        before = label.copy()
+        np.minimum.at(label, a, low)
+        np.minimum.at(label, b, low)
+        label = label[label]  # pointer jumping: a chain's label reaches its root in a few rounds
+        if np.array_equal(label, before):
+            return label
 
 
 def _ear_clipping(plane: np.ndarray, tolerance: float) -> np.ndarray | None:

@@ -56,6 +56,7 @@ from .contacts import (
     reduce_contacts,
     refine_near,
     refine_to_size,
+    refined_pieces,
 )
 from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import (
@@ -357,9 +358,10 @@ class World:
             return pair
         pair.vertices, pair.faces = surface
         pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
-        merged, cover = (merge_flat_regions(pair.vertices, pair.faces, self.flat_width(sdf_body))
+        max_edge = sdf_body.max_edge if self.refine else math.inf
+        merged, cover = (merge_flat_regions(pair.vertices, pair.faces, self.flat_width(sdf_body), refined_pieces(max_edge))
                          if self.refine else (pair.faces, None))
-        refined = refine_to_size(pair.vertices, merged, sdf_body.max_edge if self.refine else math.inf, PREREFINE_MAX_FACES)
+        refined = refine_to_size(pair.vertices, merged, max_edge, PREREFINE_MAX_FACES)
         if refined is not None:
             vertices, faces, origin = refined
             cover = (cover or FaceCover.identity(pair.vertices, pair.faces)).take(origin, vertices[faces])
