@@ -26,9 +26,9 @@ from ..geometry import face_normals
 # about that, and no more.
 ROUNDING = 2e-7
 MAX_LINK = 12  # a vertex with more faces than this around it stays: its rim's ears would be long slivers
-# A flat part is re-meshed only where that divides its faces by this much at least: a mesh cut finer than its
-# shape needs. Re-cutting a coarse CAD tessellation into a few fewer, longer faces costs the narrow phase more
-# than it saves (docs/sim-contacts.md).
+# A flat part is re-meshed only where that divides its faces by this much at least (a mesh cut finer than its shape
+# needs, by a subdivision or more) and the pieces the refinement then cuts them into by half: re-cutting a coarse
+# CAD tessellation into a few fewer, longer faces costs the narrow phase more than it saves (docs/sim-contacts.md).
 MIN_GAIN = 4
 
 
@@ -106,9 +106,9 @@ def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray, max_width: float
     module docstring), where the faces that replace a vertex's are no wider than ``max_width`` (m; a face's width:
     twice its area over its longest edge). A simulation passes half its reduction's cell: the reduction keeps at most
     one contact per cell, a face gives one at most, so faces that narrow leave a flat contact patch its contacts.
-    A group of faces merged together keeps its merge only where that divides its faces by ``MIN_GAIN`` at least,
-    counted as ``pieces`` (vertices, faces (N, 3)) -> (N,) counts them: the pieces a caller cuts each face into
-    (a simulation's refinement to its SDF's size; None: one each).
+    A group of faces merged together keeps its merge only where that divides its faces by ``MIN_GAIN`` at least and
+    their ``pieces`` by 2: (vertices, faces (N, 3)) -> (N,) the pieces a caller cuts each face into (a simulation's
+    refinement to its SDF's size; None: one each).
 
     Returns:
         faces (F', 3) on the same vertices (orientation kept), and the :class:`FaceCover` of the input's faces
@@ -169,8 +169,8 @@ class _Decimation:
 
     def _worth_it(self, faces: list, lists: list) -> tuple[np.ndarray, list]:
         """The faces (F', 3) and their input faces' lists, where each group of input faces merged together
-        (joined by sharing an output face) keeps its merge only if that divides its faces, counted in ``pieces``,
-        by at least ``MIN_GAIN``; the others get their input faces back."""
+        (joined by sharing an output face) keeps its merge only if that divides its faces by ``MIN_GAIN`` and their
+        ``pieces`` by 2 at least; the others get their input faces back."""
         n = len(self.input)
         faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         pairs = np.asarray([(m[0], other) for m in lists for other in m[1:]], dtype=np.int64).reshape(-1, 2)
@@ -178,8 +178,9 @@ class _Decimation:
         group_of_output = np.asarray([group[m[0]] for m in lists], dtype=np.int64)
         inputs = np.bincount(group, weights=self.pieces(self.vertices, self.input), minlength=n)
         outputs = np.bincount(group_of_output, weights=self.pieces(self.vertices, faces), minlength=n)
-        merged = np.bincount(group, minlength=n) > 1
-        kept = (outputs * MIN_GAIN <= inputs) | ~merged  # a face no merge touched is kept as it is
+        count_in, count_out = np.bincount(group, minlength=n), np.bincount(group_of_output, minlength=n)
+        merged = count_in > 1
+        kept = ((count_out * MIN_GAIN <= count_in) & (2 * outputs <= inputs)) | ~merged  # untouched faces stay
         keep = kept[group_of_output]
         restored = np.flatnonzero(~kept[group])
         faces = np.concatenate([faces[keep], self.input[restored]])
