@@ -209,7 +209,7 @@ class _Decimation:
         """(first, last): the runs of faces first .. last - 1 of the fan (cyclic where closed) that v may leave,
         the most faces first: a closed fan whole; the faces on one side of a line through v and two rim vertices
         (an open fan's ends, or any two)."""
-        k = len(fan) if (fan := loop if closed else loop[:-1]) else 0
+        k = len(loop) if closed else len(loop) - 1  # the fan's faces
         direction = self.vertices[loop] - self.vertices[v]  # (L, 3)
         length = np.linalg.norm(direction, axis=1)
         across = np.linalg.norm(np.cross(direction[:, None], direction[None]), axis=2)  # (L, L) |d_i x d_j|

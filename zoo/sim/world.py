@@ -359,8 +359,9 @@ class World:
         pair.vertices, pair.faces = surface
         pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
         max_edge = sdf_body.max_edge if self.refine else math.inf
+        flat = self.refine and len(pair.faces) <= PREREFINE_MAX_FACES  # a larger mesh is refined near the SDF each step
         merged, cover = (merge_flat_regions(pair.vertices, pair.faces, self.flat_width(sdf_body), refined_pieces(max_edge))
-                         if self.refine else (pair.faces, None))
+                         if flat else (pair.faces, None))
         refined = refine_to_size(pair.vertices, merged, max_edge, PREREFINE_MAX_FACES)
         if refined is not None:
             vertices, faces, origin = refined
