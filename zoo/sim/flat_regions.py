@@ -30,6 +30,9 @@ MAX_LINK = 12  # a vertex with more faces than this around it stays: its rim's e
 # needs, by a subdivision or more) and the pieces the refinement then cuts them into by half: re-cutting a coarse
 # CAD tessellation into a few fewer, longer faces costs the narrow phase more than it saves (docs/sim-contacts.md).
 MIN_GAIN = 4
+# A mesh with more vertices between flat faces than this is left as it is: the pass removes them one at a time in
+# Python, about 0.1 ms each, and a build should not wait seconds for it.
+MAX_CANDIDATES = 50_000
 
 
 @dataclass
@@ -118,7 +121,7 @@ def merge_flat_regions(vertices: np.ndarray, faces: np.ndarray, max_width: float
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     tolerance = _tolerance(vertices)
     candidates = _vertices_between_flat_faces(vertices, faces, tolerance)
-    if not len(candidates):
+    if not len(candidates) or len(candidates) > MAX_CANDIDATES:  # none, or more than a build should loop over
         return faces, FaceCover.identity(vertices, faces)
     return _Decimation(vertices, faces, tolerance, max_width, pieces).run(candidates)
 
@@ -176,11 +179,14 @@ class _Decimation:
         pairs = np.asarray([(m[0], other) for m in lists for other in m[1:]], dtype=np.int64).reshape(-1, 2)
         group = _components(n, pairs[:, 0], pairs[:, 1])
         group_of_output = np.asarray([group[m[0]] for m in lists], dtype=np.int64)
-        inputs = np.bincount(group, weights=self.pieces(self.vertices, self.input), minlength=n)
-        outputs = np.bincount(group_of_output, weights=self.pieces(self.vertices, faces), minlength=n)
         count_in, count_out = np.bincount(group, minlength=n), np.bincount(group_of_output, minlength=n)
-        merged = count_in > 1
-        kept = ((count_out * MIN_GAIN <= count_in) & (2 * outputs <= inputs)) | ~merged  # untouched faces stay
+        kept = (count_out * MIN_GAIN <= count_in) & (count_in > 1)  # the pieces are counted for these alone
+        ins, outs = np.flatnonzero(kept[group]), np.flatnonzero(kept[group_of_output])
+        if len(ins):
+            inputs = np.bincount(group[ins], weights=self.pieces(self.vertices, self.input[ins]), minlength=n)
+            outputs = np.bincount(group_of_output[outs], weights=self.pieces(self.vertices, faces[outs]), minlength=n)
+            kept &= 2 * outputs <= inputs
+        kept |= count_in == 1  # a face no merge touched stays
         keep = kept[group_of_output]
         restored = np.flatnonzero(~kept[group])
         faces = np.concatenate([faces[keep], self.input[restored]])

@@ -359,7 +359,9 @@ class World:
         pair.vertices, pair.faces = surface
         pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
         max_edge = sdf_body.max_edge if self.refine else math.inf
-        flat = self.refine and len(pair.faces) <= PREREFINE_MAX_FACES  # a larger mesh is refined near the SDF each step
+        # the flat pass is for a model's meshes: an SDF body's surface is made at the resolution contacts need, and
+        # a mesh larger than this is refined near the SDF at every step
+        flat = self.refine and frame == "geom" and len(pair.faces) <= PREREFINE_MAX_FACES
         merged, cover = (merge_flat_regions(pair.vertices, pair.faces, self.flat_width(sdf_body), refined_pieces(max_edge))
                          if flat else (pair.faces, None))
         refined = refine_to_size(pair.vertices, merged, max_edge, PREREFINE_MAX_FACES)
