@@ -84,8 +84,8 @@ SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one 
 # a mesh that refining once would grow past this many faces (a large ground mesh under a small SDF) is
 # instead clipped and refined near the SDF at every step, from scratch (no temporal coherence for that pair)
 PREREFINE_MAX_FACES = 200_000
-# a face merged where the mesh is flat is at most this many of the reduction's cells wide (it keeps one contact per
-# cell, one per face at most): a whole cell left Bottle-Holder's bottle on one contact, still rocking at 0.16 s
+# a face merged where the mesh is flat is at most this many of the reduction's cells wide: the reduction keeps one
+# contact per cell and a face gives one at most, so wider faces leave a flat support too few contacts
 FLAT_WIDTH_CELLS = 0.5
 TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within this of its surface
 
