@@ -34,6 +34,7 @@ class BenchOptions:
     n_per_shape: int = 200  # --detector: bench triangles per shape
     sim_seconds: float = 0.2  # --sim: simulated seconds per run
     panda: bool = True  # --sim: the Panda scenes too
+    completion_limit: int | None = None  # --completion: test meshes per category (default: all)
 
 
 def _table(title: str, header: list[str], rows: list[list[str]]):
@@ -152,8 +153,25 @@ def _run_sim(opts: BenchOptions) -> None:
     console.print(f"written: {path} and sim.png beside it")
 
 
+def _run_completion(opts: BenchOptions) -> None:
+    import json
+
+    from rich.console import Console
+
+    from sdfzoo.benches.completion import TABLE_HEADER, format_table, run_completion_benchmark
+
+    console = Console(width=max(Console().width, 150))
+    path = run_completion_benchmark(opts.out, limit=opts.completion_limit, seed=opts.seed, threads=opts.threads,
+                                    progress=console.print if opts.progress else (lambda *_: None))
+    report = json.loads(path.read_text())
+    machine = report["machine"]
+    console.print(_table(f"shape completion from depth images, test-split meshes (torch {machine['torch']}, "
+                         f"{machine['threads']} thread(s), {machine['cpu']})", TABLE_HEADER, format_table(report)))
+    console.print(f"written: {path} and completion.png beside it")
+
+
 _SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers, "scenes": _run_scenes, "detector": _run_detector,
-                                                        "sim": _run_sim}
+                                                        "sim": _run_sim, "completion": _run_completion}
 
 
 @app.command()
@@ -177,12 +195,17 @@ def bench(
     sim_seconds: float = typer.Option(0.2, "--sim-seconds", min=0.002, help="With --sim: simulated seconds per run."),
     panda: bool = typer.Option(True, "--panda/--no-panda", help="With --sim: the four Panda scenes too, each run whole "
                                "(minutes each), with sdfzoo's contacts and with MuJoCo's on CoACD pieces."),
+    completion: bool = typer.Option(False, "--completion", help="Shape completion from 1-3 simulated depth images of the "
+                                    "mugs' and bottles' test meshes (needs $ZOO_DATA): fit_observation against the nearest "
+                                    "train shape and the mean codes, fit_codes on the whole mesh as the ceiling; JSON and a PNG."),
+    completion_limit: int = typer.Option(None, "--completion-limit", min=1, help="With --completion: test meshes per category."),
 ):
     """Measure error against run time and write the results as JSON (solver section by default)."""
-    chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None, "sim": sim}.items() if on]
+    chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None, "sim": sim,
+                                    "completion": completion}.items() if on]
     chosen = chosen or [DEFAULT_SECTION]
     opts = BenchOptions(out=out, triangles=triangles, seed=seed, threads=threads or None, progress=not no_progress,
                         scenes=scene or None, model=detector, unseen_category=unseen_category, max_shapes=max_shapes,
-                        n_per_shape=n_per_shape, sim_seconds=sim_seconds, panda=panda)
+                        n_per_shape=n_per_shape, sim_seconds=sim_seconds, panda=panda, completion_limit=completion_limit)
     for name in chosen:
         _SECTIONS[name](opts)

@@ -24,6 +24,7 @@ _EXPORTS = {
     "Contacts": "collision", "collide": "collision",
     "Model": "model",
     "NeuralSDF": "neural", "NeuralShape": "neural",
+    "Observation": "observation",
     "list_models": "registry", "load": "registry", "load_shape": "shape_file",
     "VoxelSDF": "voxel",
 }

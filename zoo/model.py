@@ -104,6 +104,29 @@ class Model:
                      "lr": float(lr), "lr_positions": float(lr_positions)}
         return shape
 
+    def fit_observation(self, obs, up=(0.0, 0.0, 1.0), name: str = "observed", progress: bool = False,
+                        **options) -> NeuralShape:
+        """Shape, pose and scale of an unseen object from what a sensor saw of it: a NeuralShape in the world frame.
+
+        ``obs`` is a :class:`zoo.Observation` (``from_depth``, ``from_points``, ``from_mujoco``); ``up`` (3,) the
+        world's up, about which the object's yaw is searched (it stands upright on a surface; ``full_rotation=True``
+        fits a tilt too). The code cloud starts from the train shape that explains the view best and stays near it
+        (the category's prior for the unseen side); the similarity (scale, yaw, centre) is fitted with it.
+        ``shape.fit`` records the observation's size, the loss terms, the chosen and the rejected poses (one per
+        starting yaw), the fitted size and the residual at the observed points (mm). Keyword ``options`` are
+        :class:`zoo.completion.FitOptions` fields (``yaws``, ``refine_iters``, ``sigma``, ``prior``, ``codes``:
+        "fit", or the baselines "nearest" and "mean", ``seed``, ...). No libigl needed.
+        """
+        from dataclasses import fields
+
+        from .completion import FitOptions, fit_observation
+
+        unknown = set(options) - {f.name for f in fields(FitOptions)}
+        if unknown:
+            raise InputError(f"fit_observation got unknown options {sorted(unknown)}; it takes "
+                             f"{', '.join(f.name for f in fields(FitOptions))}")
+        return fit_observation(self, obs, up, FitOptions(**options), name=name, progress=progress)
+
     # ------------------------------------------------------------------ detection
 
     def detect(self, shape, triangles, polish: bool = True) -> torch.Tensor:
