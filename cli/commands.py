@@ -2,19 +2,39 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from .main import app
 
 
 @app.command()
-def demo(out: str = typer.Option("out/demo", help="Folder for the demo's JSON and PNG.")):
+def demo(
+    out: str = typer.Option(None, help="Folder for the demo's files (default: out/demo, with --observed out/observed)."),
+    observed: bool = typer.Option(False, "--observed", help="Instead: two depth cameras see a never-seen test mug on a "
+                                  "table (MuJoCo's renderer), the mugs model fits it (fit_observation), and the fitted shape "
+                                  "is hung on a rack and simulated, with a video (needs $ZOO_DATA)."),
+    stem: str = typer.Option(None, "--stem", help="With --observed: the test-split mug to see (default hoi4d_mug_0047)."),
+    seed: int = typer.Option(0, "--seed", help="With --observed: the mug's yaw and the sensor noise."),
+):
     """Run the bundled demo scene on the pretrained models shipped in the package."""
-    from sdfzoo.benches.demo import run_demo
     from zoo.progress import shown
 
+    if observed:
+        from sdfzoo.benches.see_and_hang import DEMO_MUG, prepare
+
+        from .sim import simulate
+
+        out = out or "out/observed"
+        with shown():
+            scene = prepare(out, stem or DEMO_MUG, seed, log=typer.echo)
+        simulate(str(scene), seconds=None, dt=None, method=None, out=Path(out), animation=True, video="mp4", progress=True)
+        return
+    from sdfzoo.benches.demo import run_demo
+
     with shown():
-        run_demo(out)
+        run_demo(out or "out/demo")
 
 
 @app.command()

@@ -47,16 +47,58 @@ def fit_category(
 @app.command("fit-codes")
 def fit_codes(
     model: str = typer.Argument(..., help="A model: NAME, NAME@X.Y.Z, a package directory or hf-hub:ORG/NAME@TAG."),
-    mesh: str = typer.Argument(..., help="The unseen mesh (.obj, .ply, .stl, .off)."),
+    mesh: str = typer.Argument(None, help="The unseen mesh (.obj, .ply, .stl, .off); or give --points or --depth."),
+    points: str = typer.Option(None, "--points", help="What a sensor saw instead of a mesh: a .ply point cloud, world "
+                               "frame, metres (normals nx ny nz used where present)."),
+    depth: str = typer.Option(None, "--depth", help="What cameras saw instead of a mesh: an .npz with depth (H, W) or "
+                              "(V, H, W) metres, K, T_world_camera (OpenCV camera to world) and optionally mask."),
+    origin: str = typer.Option(None, "--origin", help="With --points: the sensor's position X,Y,Z (free-space evidence)."),
     out: str = typer.Option(None, "--out", help="Write the fitted shape here (safetensors, with its model and accuracy): zoo.load_shape(OUT) or a scene's [sdf] codes = OUT reads it."),
     iters: int = typer.Option(500, "--iters", help="Adam iterations on the code cloud (decoder frozen)."),
-    up: str = typer.Option("z", "--up", help="The mesh's up axis: x, y, z, -x, -y, -z."),
+    up: str = typer.Option("z", "--up", help="The mesh's up axis: x, y, z, -x, -y, -z; with --points or --depth the world's "
+                           "up as an axis or X,Y,Z (the object stands on a surface under it)."),
     seed: int = typer.Option(0, "--seed"),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
 ):
-    """Fit an unseen mesh's code cloud with the model's decoder frozen; print its accuracy."""
-    from sdfzoo.pipeline.fit_category import fit_codes as run_fit_codes
+    """Fit an unseen object: its mesh (code cloud, decoder frozen; prints its accuracy), or what a sensor saw of it
+    (--points, --depth: codes, scale, yaw and position in the world frame; prints the pose and the residual)."""
+    from zoo.errors import InputError
 
-    summary = run_fit_codes(model, mesh, out, iters=iters, up=up, seed=seed, device=device, progress=progress)
+    given = [name for name, value in (("MESH", mesh), ("--points", points), ("--depth", depth)) if value]
+    if len(given) != 1:
+        raise InputError(f"fit-codes takes one of MESH, --points FILE.ply or --depth FILE.npz, got {given or 'none'}")
+    if mesh:
+        from sdfzoo.pipeline.fit_category import fit_codes as run_fit_codes
+
+        summary = run_fit_codes(model, mesh, out, iters=iters, up=up, seed=seed, device=device, progress=progress)
+    else:
+        from sdfzoo.pipeline.observations import fit_observed, read_depth, read_points
+
+        obs = read_points(points, _vector(origin, "--origin")) if points else read_depth(depth)
+        summary = fit_observed(model, obs, out, up=_up_vector(up), seed=seed, device=device, progress=progress)
     typer.echo(json.dumps(summary, indent=1))
+
+
+def _vector(text: str | None, option: str):
+    """X,Y,Z -> a list of three floats (None stays None)."""
+    from zoo.errors import InputError
+
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise InputError(f"{option} takes three numbers X,Y,Z, got {text!r}")
+    return values
+
+
+def _up_vector(text: str):
+    """An axis name (x, -y, ...) or X,Y,Z -> a 3-vector."""
+    axes = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
+    name = text.strip().lower()
+    if name.lstrip("+-") in axes:
+        return [(-v if name.startswith("-") else v) for v in axes[name.lstrip("+-")]]
+    return _vector(text, "--up")

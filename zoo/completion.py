@@ -245,17 +245,32 @@ def _evidence(obs: Observation, up: np.ndarray, sigma: float, standing: bool) ->
     if obs.free_origins is not None:
         segments.append(_near_part(obs.free_origins, obs.free_ends, centre, reach, gap))
     if standing:
-        segments.append(_below_support(points, up, reach, gap))
+        segments.append(_below_support(points, up, _support_height(obs, up, reach), reach, gap))
     return _Evidence(torch.as_tensor(points, dtype=torch.float32),
                      [torch.as_tensor(s, dtype=torch.float32) for s in segments if len(s)],
-                     torch.as_tensor(up, dtype=torch.float32), float(np.percentile(points @ up, 1)) if standing else None)
+                     torch.as_tensor(up, dtype=torch.float32), _support_height(obs, up, reach) if standing else None)
 
 
-def _below_support(points: np.ndarray, up: np.ndarray, reach: float, gap: float, count: int = 48) -> np.ndarray:
+def _support_height(obs: Observation, up: np.ndarray, reach: float) -> float:
+    """The height (along ``up``) of the surface the object stands on: where the free rays beside the object end at
+    about the height of its lowest points (the table seen around its base), else its lowest points (1st percentile:
+    a base's rounded edge seen from above puts them a little higher than the table)."""
+    heights = obs.points @ up
+    low = float(np.percentile(heights, 1))
+    if obs.free_ends is not None:
+        ends = obs.free_ends
+        beside = np.linalg.norm(np.cross(ends - np.median(obs.points, axis=0), up), axis=1) < reach
+        end_heights = ends[beside] @ up
+        table = end_heights[np.abs(end_heights - low) < 0.1 * reach]
+        if len(table) >= 50:
+            return float(np.median(table))
+    return low
+
+
+def _below_support(points: np.ndarray, up: np.ndarray, support: float, reach: float, gap: float, count: int = 48) -> np.ndarray:
     """Vertical segments (count^2, 2, 3) from ``gap`` to ``reach / 2`` below the lowest observed points (the surface
     the object stands on), over a square of 1.5 times the object's extent about them."""
     height = points @ up
-    support = np.percentile(height, 1)
     across = points - np.outer(height, up)
     centre = np.median(across, axis=0)
     a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -555,7 +570,7 @@ def _refine(model, prior: CategoryPrior, h: _Hypothesis, evidence: _Evidence, al
     return {"loss": float(loss), "terms": {k: float(v) for k, v in terms.items()},
             "rotation": poses.rotation(align_t.to(poses.yaw)).detach()[0].double().numpy(),
             "scale": float(poses.log_scale.detach().exp()), "centre": poses.centre.detach()[0].double().numpy(),
-            "yaw": float(poses.yaw), "codes": codes.detach(), "positions": positions.detach()}
+            "yaw": float(poses.yaw.detach()), "codes": codes.detach(), "positions": positions.detach()}
 
 
 def _record(model, obs: Observation, up: np.ndarray, options: FitOptions, searched: list[_Hypothesis],
