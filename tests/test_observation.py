@@ -187,8 +187,9 @@ def test_a_mug_seen_by_mujoco_rests_on_the_table_where_the_true_mesh_rests(tmp_p
 def test_fit_codes_takes_depth_images_and_points_on_the_command_line(tmp_path, posed):
     from typer.testing import CliRunner
 
-    from sdfzoo.cli.main import app
+    from sdfzoo.cli.main import app, register_commands
 
+    register_commands()
     obj, _, _ = posed
     images = depth_views.render(*depth_views.with_table(obj.vertices, obj.faces),
                                 depth_views.table_views([0.03, -0.02, 0.04], 2, np.random.default_rng(1)))

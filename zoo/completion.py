@@ -413,8 +413,9 @@ class _Hypothesis:
 def fit_observation(model, obs: Observation, up=(0.0, 0.0, 1.0), options: FitOptions | None = None,
                     name: str = "observed", progress: bool = False):
     """A NeuralShape in the world frame fitted to ``obs`` (see the module docstring); ``shape.fit`` records how."""
-    from .meshes import Similarity, _rotation_between
+    from .meshes import Similarity, rotation_between
     from .neural import NeuralShape
+    from .progress import task_bar
 
     options = options or FitOptions()
     started = time.perf_counter()
@@ -425,18 +426,19 @@ def fit_observation(model, obs: Observation, up=(0.0, 0.0, 1.0), options: FitOpt
         raise InputError(f"up must be a non-zero 3-vector, got {up.tolist()}")
     up = up / np.linalg.norm(up)
     _refuse_a_plane(obs)
-    align = _rotation_between(up, np.array([0.0, 0.0, 1.0]))
+    align = rotation_between(up, np.array([0.0, 0.0, 1.0]))
     align_t = torch.as_tensor(align, dtype=torch.float32)
     evidence = _evidence(obs, up, options.sigma, options.standing)
     prior = category_prior(model, progress=progress)
     n_train = len(model.shapes)
     shapes = [n_train] if options.codes == "mean" else list(range(n_train))
     generator = torch.Generator().manual_seed(options.seed)
-    with torch.enable_grad():
-        searched = _grid_search(prior, shapes, evidence, obs, align, align_t, options, generator)
-        chosen = _distinct_yaws(searched, options.refine_hypotheses if options.codes == "fit" else 1)
+    refined = options.refine_hypotheses if options.codes == "fit" else 1
+    with torch.enable_grad(), task_bar(progress, "fit observation", options.grid_iters + refined * options.refine_iters) as bar:
+        searched = _grid_search(prior, shapes, evidence, obs, align, align_t, options, generator, bar)
+        chosen = _distinct_yaws(searched, refined)
         for h in chosen:
-            h.refined = _refine(model, prior, h, evidence, align_t, options, generator)
+            h.refined = _refine(model, prior, h, evidence, align_t, options, generator, bar)
     best = min(chosen, key=lambda h: h.refined["loss"])
     rotation = best.refined["rotation"]
     scale = best.refined["scale"]
@@ -462,7 +464,7 @@ def _refuse_a_plane(obs: Observation) -> None:
 
 
 def _grid_search(prior: CategoryPrior, shapes: list[int], evidence: _Evidence, obs: Observation, align: np.ndarray,
-                 align_t: torch.Tensor, options: FitOptions, generator: torch.Generator) -> list[_Hypothesis]:
+                 align_t: torch.Tensor, options: FitOptions, generator: torch.Generator, bar) -> list[_Hypothesis]:
     """Every (shape, starting yaw) hypothesis's pose fitted on the grids; -> the best shape of each starting yaw."""
     index = torch.as_tensor(shapes)
     poses = _start_poses(evidence, obs, align, prior.z_range[index], options.yaws)
@@ -477,6 +479,7 @@ def _grid_search(prior: CategoryPrior, shapes: list[int], evidence: _Evidence, o
         optimiser.zero_grad(set_to_none=True)
         loss.sum().backward()
         optimiser.step()
+        bar.advance()
     with torch.no_grad():
         points, free = _draw(evidence, FitOptions(points=4 * options.points, free_points=4 * options.free_points,
                                                   codes=options.codes), generator)
@@ -515,7 +518,7 @@ def _angle_between(a: float, b: float) -> float:
 
 
 def _refine(model, prior: CategoryPrior, h: _Hypothesis, evidence: _Evidence, align_t: torch.Tensor,
-            options: FitOptions, generator: torch.Generator) -> dict:
+            options: FitOptions, generator: torch.Generator, bar) -> dict:
     """Pose (and, with ``codes="fit"``, the code cloud) of one hypothesis refined through the network."""
     from .neural import decode
 
@@ -560,6 +563,7 @@ def _refine(model, prior: CategoryPrior, h: _Hypothesis, evidence: _Evidence, al
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
+            bar.advance()
         with torch.no_grad():
             points, free = _draw(evidence, FitOptions(points=4 * options.points, free_points=4 * options.free_points,
                                                       codes=options.codes), generator)

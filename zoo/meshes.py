@@ -224,14 +224,14 @@ def up_rotation(up) -> np.ndarray:
             raise InputError(f"up axis must be one of x, y, z, -x, -y, -z or a 3x3 rotation, got {up!r}")
         u = np.zeros(3)
         u[_AXES[axis]] = sign
-        return _rotation_between(u, np.array([0.0, 0.0, 1.0]))
+        return rotation_between(u, np.array([0.0, 0.0, 1.0]))
     r = np.asarray(up, dtype=np.float64)
     if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) <= 0:
         raise InputError(f"an orientation given as a matrix must be a (3, 3) proper rotation, got {np.asarray(up).tolist()}")
     return r
 
 
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation taking unit vector a to unit vector b (180 degrees about x for a = -b along z)."""
     v = np.cross(a, b)
     c = float(a @ b)
