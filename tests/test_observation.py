@@ -207,3 +207,28 @@ def test_fit_codes_takes_depth_images_and_points_on_the_command_line(tmp_path, p
     assert result.exit_code == 0, result.output
     result = CliRunner().invoke(app, ["fit-codes", "mugs", "--points", str(tmp_path / "seen.ply"), "--depth", "x.npz"])
     assert result.exit_code != 0
+
+
+def test_the_category_prior_is_computed_once_and_read_back_from_its_cache(tmp_path, monkeypatch, mugs):
+    from zoo import completion
+
+    monkeypatch.setenv("ZOO_CACHE", str(tmp_path))
+    fresh = zoo.load("mugs")
+    prior = completion.category_prior(fresh, resolution=12)
+    assert list(tmp_path.glob("priors/mugs-*.npz"))
+    # a node's value is the shape's own distance there
+    nodes = torch.linspace(-completion.GRID_HALF_WIDTH, completion.GRID_HALF_WIDTH, 12)
+    point = torch.stack([nodes[3], nodes[7], nodes[5]])[None]  # x, y, z of grid[z=5, y=7, x=3]
+    torch.testing.assert_close(prior.grids[0, 5, 7, 3], fresh.shape(fresh.shapes[0]).normalised(point)[0], atol=1e-5, rtol=0)
+    monkeypatch.setattr(completion, "_compute_prior", lambda *a: pytest.fail("the cached prior was computed again"))
+    again = completion.category_prior(zoo.load("mugs"), resolution=12)
+    torch.testing.assert_close(again.grids, prior.grids)
+
+
+def test_a_tilted_fit_keeps_a_proper_rotation_near_upright(mugs, posed):
+    obj, obs, _ = posed
+    shape = mugs.fit_observation(obs, full_rotation=True, grid_iters=40, refine_iters=40, refine_hypotheses=1)
+    r = shape.similarity.rotation
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-5)
+    assert np.degrees(np.arccos(np.clip(r[2, 2], -1, 1))) < 10.0  # the mug stood upright: little tilt found
+    assert surface_errors(shape, obj, samples=5000)["true_to_fit_p50"] < 0.01
