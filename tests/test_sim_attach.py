@@ -429,3 +429,19 @@ def test_spheres_and_capsules_meet_an_sdf_in_closed_form_at_the_exact_depth(half
     assert world.contacts.depths[deepest].item() == pytest.approx(exact, abs=2e-5 if half_length == 0 else 1e-4)
     expected_normal = (nearest - centre) / np.linalg.norm(nearest - centre)  # from the SDF towards the capsule
     assert np.allclose(world.contacts.normals[deepest].numpy(), expected_normal, atol=1e-2)
+
+
+def test_a_mujoco_gl_backend_that_cannot_load_says_what_to_install(tmp_path):
+    """mujoco imports its renderer at import: MUJOCO_GL=osmesa without OSMesa fails there with an AttributeError deep in
+    PyOpenGL. `import zoo.sim` says what to install or unset instead (a stand-in mujoco fails the same way here)."""
+    import os
+    import subprocess
+    import sys
+
+    fake = tmp_path / "mujoco"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise AttributeError(\"'NoneType' object has no attribute 'glGetError'\")\n")
+    env = {**os.environ, "MUJOCO_GL": "osmesa", "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    done = subprocess.run([sys.executable, "-c", "import zoo.sim"], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0
+    assert "MissingDependencyError" in done.stderr and "libosmesa6" in done.stderr and "unset MUJOCO_GL" in done.stderr

@@ -46,3 +46,21 @@ def _probe_current() -> str | None:
     except Exception:  # no GL context: glfw without a display, a missing library
         return None
     return os.environ.get("MUJOCO_GL") or "glfw"
+
+
+def import_mujoco():
+    """``import mujoco``, with a message that says what to do where the ``MUJOCO_GL`` backend named cannot load (mujoco
+    imports its renderer at import: ``MUJOCO_GL=osmesa`` without OSMesa fails there with an AttributeError)."""
+    from .errors import MissingDependencyError, require
+
+    try:
+        return require("mujoco", extra="sim")
+    except (AttributeError, OSError, RuntimeError) as exc:
+        backend = os.environ.get("MUJOCO_GL")
+        if not backend:
+            raise
+        install = {"osmesa": "Debian's libosmesa6 (apt-get install libosmesa6)", "egl": "an EGL driver (Debian's libegl1)"}
+        raise MissingDependencyError(
+            f"mujoco could not load its renderer with MUJOCO_GL={backend} ({type(exc).__name__}: {exc}): install "
+            f"{install.get(backend, 'the libraries that backend needs')}, or unset MUJOCO_GL (sdfzoo then picks a "
+            "backend that works, or falls back where none does)") from exc

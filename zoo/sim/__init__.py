@@ -7,9 +7,10 @@ file: :class:`Simulation`. See the design's "zoo.sim" contract.
 
 from __future__ import annotations
 
-from ..errors import MissingDependencyError, require
+from ..errors import MissingDependencyError
+from ..offscreen import import_mujoco
 
-if not hasattr(require("mujoco", extra="sim"), "mj_addContact"):  # the Python binding zoo.sim adds its contacts with
+if not hasattr(import_mujoco(), "mj_addContact"):  # the Python binding zoo.sim adds its contacts with
     raise MissingDependencyError("zoo.sim needs a mujoco whose Python bindings have mj_addContact (tested on 4.0.0): "
                                  "pip install -U 'mujoco>=4'")
 
