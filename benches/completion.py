@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from zoo.completion import angle_between
+
 from . import depth_views
 
 SIZES = {"mugs": 0.12, "bottles": 0.22}  # metres: the largest side of a test object as placed on the table
@@ -66,9 +68,8 @@ def observe(obj: PlacedObject, views: int, rng: np.random.Generator, noise: floa
     the renderer's labels) -> (Observation, DepthViews)."""
     import zoo
 
-    v, f, labels = depth_views.with_table(obj.vertices, obj.faces)
     target = np.array([*obj.vertices[:, :2].mean(0), 0.5 * obj.vertices[:, 2].max()])
-    images = depth_views.render(v, f, labels, depth_views.table_views(target, views, rng))
+    images = depth_views.render(depth_views.with_table(obj.vertices, obj.faces), depth_views.table_views(target, views, rng))
     depth = depth_views.sensor_noise(images.depth, rng, noise)
     return zoo.Observation.from_depth(depth, images.K, images.T_world_camera, images.mask), images
 
@@ -96,7 +97,7 @@ def surface_errors(shape, obj: PlacedObject, samples: int = 20000, seed: int = 0
         "fit_to_true_p50": float(np.median(f_true) / diag), "fit_to_true_p90": float(np.percentile(f_true, 90) / diag),
         "true_to_fit_p50": float(np.median(f_fit) / diag), "true_to_fit_p90": float(np.percentile(f_fit, 90) / diag),
         "scale_error": float(abs(np.ptp(fv[:, 2]) / np.ptp(obj.vertices[:, 2]) - 1.0)),
-        "yaw_error_deg": float(math.degrees(_angle(handle_yaw(on_fit), handle_yaw(on_true)))),
+        "yaw_error_deg": float(math.degrees(angle_between(handle_yaw(on_fit), handle_yaw(on_true)))),
     }
 
 
@@ -110,10 +111,6 @@ def handle_yaw(points: np.ndarray) -> float:
     if (along**3).mean() < 0:
         axis = -axis
     return math.atan2(axis[1], axis[0])
-
-
-def _angle(a: float, b: float) -> float:
-    return abs((a - b + math.pi) % (2 * math.pi) - math.pi)
 
 
 # --------------------------------------------------------------------------- the run

@@ -51,15 +51,26 @@ def mug_rack_scene(model, stem: str | None = None, along: float = 0.06, press: f
     stem = stem or next((s for s in PREFERRED_MUGS if s in model.shapes), model.shapes[0])
     shape = model.shape(stem)
     factor = (1.0 / float(shape.similarity.scale)) / RACK_MUG_SIZE
-    rack = {k: (v if k == "peg_angle_deg" else v * factor) for k, v in RACK.items()}
-    a = np.radians(rack["peg_angle_deg"])
-    peg_start = np.array([0.0, 0.0, rack["peg_height"]])
-    pose, _ = hanging_pose(shape, peg_start, (np.cos(a), 0.0, np.sin(a)), rack["peg_radius"], along * factor, press * factor)
+    rack, pose = rack_for(shape, along, press)
     return Scene(
         name="demo-mug-rack", sdf=shape, mesh=make_part("rack", **rack), sdf_pose=pose, mesh_pose=np.eye(4),
         method="amortized" if model.detector is not None else "fw", margin=1e-3 * factor,
         sdf_label=f"{model.name}@{model.version}:{stem}", mesh_label="procedural:rack",
     )
+
+
+def rack_for(shape, along: float = 0.06, press: float = 5e-4, fit_peg: bool = False) -> tuple[dict, np.ndarray]:
+    """The procedural rack's parameters scaled to ``shape`` (its normalised cube's side against ``RACK_MUG_SIZE``),
+    and the pose (4, 4) that hangs the shape by its handle on the peg, ``along`` up it and pressed ``press`` into it
+    (both scaled too). ``fit_peg``: a peg thicker than 80% of the handle's hole is thinned to that."""
+    factor = (1.0 / float(shape.similarity.scale)) / RACK_MUG_SIZE
+    rack = {k: (v if k == "peg_angle_deg" else v * factor) for k, v in RACK.items()}
+    if fit_peg:
+        rack["peg_radius"] = min(rack["peg_radius"], 0.4 * float(handle_hole(shape)[3].min()))
+    a = np.radians(rack["peg_angle_deg"])
+    peg_start = np.array([0.0, 0.0, rack["peg_height"]])
+    pose, _ = hanging_pose(shape, peg_start, (np.cos(a), 0.0, np.sin(a)), rack["peg_radius"], along * factor, press * factor)
+    return rack, pose
 
 
 def handle_hole(shape, n_angles: int = 12, pixels: int = 96):

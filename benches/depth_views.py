@@ -53,21 +53,29 @@ def table_views(target, count: int, rng: np.random.Generator, distance=(0.4, 0.6
     return np.stack(poses)
 
 
-def render(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, poses: np.ndarray, K: np.ndarray | None = None,
-           width: int = WIDTH, height: int = HEIGHT) -> DepthViews:
-    """Depth and label images of the triangles ``vertices[faces]`` (world frame; ``labels`` (F,) one per face) from each
-    camera pose (V, 4, 4)."""
+@dataclass(frozen=True)
+class LabelledMesh:
+    """Triangles ``vertices[faces]`` (V, 3), (F, 3) in the world frame, each face labelled (``labels`` (F,))."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    labels: np.ndarray
+
+
+def render(scene: LabelledMesh, poses: np.ndarray, K: np.ndarray | None = None, width: int = WIDTH,
+           height: int = HEIGHT) -> DepthViews:
+    """Depth and label images of ``scene`` from each camera pose (V, 4, 4)."""
     K = intrinsics(width, height) if K is None else K
     depth = np.zeros((len(poses), height, width))
     label = np.full((len(poses), height, width), -1, dtype=np.int32)
     for v, pose in enumerate(poses):
-        camera = (np.asarray(vertices, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3]  # world -> camera: R^T (p - t)
-        _rasterise(camera, np.asarray(faces, dtype=np.int64), np.asarray(labels, dtype=np.int32), K, depth[v], label[v])
+        camera = (np.asarray(scene.vertices, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3]  # world -> camera: R^T (p - t)
+        _rasterise(camera, np.asarray(scene.faces, dtype=np.int64), np.asarray(scene.labels, dtype=np.int32), K, depth[v],
+                   label[v])
     return DepthViews(depth, label, np.broadcast_to(K, (len(poses), 3, 3)).copy(), np.asarray(poses, dtype=np.float64))
 
 
-def with_table(vertices: np.ndarray, faces: np.ndarray, half_size: float = 0.6, cells: int = 48
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def with_table(vertices: np.ndarray, faces: np.ndarray, half_size: float = 0.6, cells: int = 48) -> LabelledMesh:
     """The object's triangles (labelled OBJECT_ID) and a square table at z = 0 (TABLE_ID) under them, in small cells
     (the rasteriser drops a triangle with a corner behind the camera, so one large quad would vanish)."""
     ticks = np.linspace(-half_size, half_size, cells + 1)
@@ -78,7 +86,7 @@ def with_table(vertices: np.ndarray, faces: np.ndarray, half_size: float = 0.6, 
     b, c, d = a + cells + 1, a + cells + 2, a + 1
     table_f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + len(vertices)
     labels = np.concatenate([np.full(len(faces), OBJECT_ID), np.full(len(table_f), TABLE_ID)])
-    return np.concatenate([vertices, table_v]), np.concatenate([faces, table_f]), labels
+    return LabelledMesh(np.concatenate([vertices, table_v]), np.concatenate([faces, table_f]), labels)
 
 
 def sensor_noise(depth: np.ndarray, rng: np.random.Generator, sigma_at_half_metre: float = 0.001) -> np.ndarray:

@@ -7,7 +7,8 @@
    from :mod:`sdfzoo.benches.depth_views`'s rasteriser, and the demo says so.
 3. ``zoo.load("mugs").fit_observation`` fits codes, scale, yaw and position; the shape is saved.
 4. A scene file hangs the fitted shape by its handle (found from the fitted SDF alone) on the procedural rack's
-   peg, released 1 cm above; ``zoo simulate`` runs it and writes the video.
+   peg (thinned to 80% of the handle's hole where that is narrower), released 1 cm above; ``zoo simulate`` runs it
+   and writes the video.
 """
 
 from __future__ import annotations
@@ -106,9 +107,8 @@ def see(out_dir: Path, stem: str = DEMO_MUG, seed: int = 0, noise: float = 0.001
 
     log("no OpenGL for MuJoCo's offscreen renderer (MUJOCO_GL=egl, or osmesa with Debian's libosmesa6): the depth "
         "images come from sdfzoo's own rasteriser instead")
-    v, f, labels = depth_views.with_table(obj.vertices, obj.faces)
     k = depth_views.intrinsics(focal=0.5 * depth_views.HEIGHT / math.tan(math.radians(22.5)))
-    images = depth_views.render(v, f, labels, poses, k)
+    images = depth_views.render(depth_views.with_table(obj.vertices, obj.faces), poses, k)
     depth = depth_views.sensor_noise(images.depth, np.random.default_rng(seed), noise)
     obs = zoo.Observation.from_depth(depth, images.K, images.T_world_camera, images.mask)
     return Seen(obs, obj.vertices, obj.faces, "sdfzoo's rasteriser")
@@ -117,13 +117,9 @@ def see(out_dir: Path, stem: str = DEMO_MUG, seed: int = 0, noise: float = 0.001
 def hanging_scene(shape_file: Path, shape, lift: float = 0.01, seconds: float = 0.4) -> dict:
     """A simulation scene (as a dict for TOML) that hangs ``shape`` (saved in ``shape_file``) by its handle on the
     procedural rack scaled to it, released ``lift`` above the hanging pose."""
-    from .demo import RACK, RACK_MUG_SIZE, hanging_pose
+    from .demo import rack_for
 
-    factor = shape.fit["scale"]["size_m"] / RACK_MUG_SIZE
-    rack = {k: (v if k == "peg_angle_deg" else v * factor) for k, v in RACK.items()}
-    a = math.radians(rack["peg_angle_deg"])
-    pose, _ = hanging_pose(shape, np.array([0.0, 0.0, rack["peg_height"]]), (math.cos(a), 0.0, math.sin(a)),
-                           rack["peg_radius"], 0.06 * factor, 5e-4 * factor)
+    rack, pose = rack_for(shape, fit_peg=True)  # a fitted handle's hole may be narrower than the train mugs'
     pose[2, 3] += lift
     return {
         "name": "observed-mug-rack", "method": "amortized", "margin": 0.001,
@@ -140,6 +136,7 @@ def hanging_scene(shape_file: Path, shape, lift: float = 0.01, seconds: float = 
 def prepare(out_dir: str | Path = "out/observed", stem: str = DEMO_MUG, seed: int = 0, log=print) -> Path:
     """Steps 1-4 up to the scene file: -> the path of the scene ``zoo simulate`` runs."""
     import zoo
+    from sdfzoo.pipeline.package import dumps_toml, toml_safe
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -153,28 +150,8 @@ def prepare(out_dir: str | Path = "out/observed", stem: str = DEMO_MUG, seed: in
     shape_file = shape.save(out_dir / f"observed_{stem}.safetensors")
     scene = hanging_scene(Path(shape_file), shape)
     path = out_dir / "observed-mug-rack.toml"
-    path.write_text(_toml(scene))
+    path.write_text(dumps_toml(toml_safe(scene), header="written by `zoo demo --observed`: a mug fitted from two depth "
+                                                       "images, hung on the rack"))
     (out_dir / "observed-fit.json").write_text(json.dumps(fit, indent=1) + "\n")
     log(f"wrote {shape_file} and {path}")
     return path
-
-
-def _toml(scene: dict) -> str:
-    """The scene as TOML (the few types it holds)."""
-    def value(v):
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, dict):
-            return "{ " + ", ".join(f"{k} = {value(x)}" for k, x in v.items()) + " }"
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(value(x) for x in v) + "]"
-        return repr(float(v)) if isinstance(v, float) else str(v)
-
-    lines = ["# written by `zoo demo --observed`: a mug fitted from two depth images, hung on the rack"]
-    lines += [f"{k} = {value(v)}" for k, v in scene.items() if not isinstance(v, (dict, list))]
-    lines += ["", "[sim]"] + [f"{k} = {value(v)}" for k, v in scene["sim"].items()]
-    for body in scene["bodies"]:
-        lines += ["", "[[bodies]]"] + [f"{k} = {value(v)}" for k, v in body.items()]
-    return "\n".join(lines) + "\n"

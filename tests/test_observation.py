@@ -30,8 +30,8 @@ def mugs():
 
 def _sphere_views(centre, radius, eyes):
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=radius)
-    v, f, labels = depth_views.with_table(np.asarray(sphere.vertices) + centre, np.asarray(sphere.faces))
-    return depth_views.render(v, f, labels, np.stack([look_at(e, centre) for e in eyes]))
+    scene = depth_views.with_table(np.asarray(sphere.vertices) + centre, np.asarray(sphere.faces))
+    return depth_views.render(scene, np.stack([look_at(e, centre) for e in eyes]))
 
 
 def test_depth_images_backproject_onto_the_surface_they_saw():
@@ -191,7 +191,7 @@ def test_fit_codes_takes_depth_images_and_points_on_the_command_line(tmp_path, p
 
     register_commands()
     obj, _, _ = posed
-    images = depth_views.render(*depth_views.with_table(obj.vertices, obj.faces),
+    images = depth_views.render(depth_views.with_table(obj.vertices, obj.faces),
                                 depth_views.table_views([0.03, -0.02, 0.04], 2, np.random.default_rng(1)))
     np.savez(tmp_path / "seen.npz", depth=images.depth, K=images.K, T_world_camera=images.T_world_camera, mask=images.mask)
     out = tmp_path / "seen.safetensors"

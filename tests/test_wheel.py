@@ -150,7 +150,7 @@ def test_the_wheels_zoo_command_runs_the_readme_flows_on_bundled_data(installed_
 
     cup = trimesh.creation.annulus(r_min=0.035, r_max=0.04, height=0.09)
     cup.apply_translation([0.0, 0.0, 0.045])  # standing on the table, z = 0
-    images = depth_views.render(*depth_views.with_table(np.asarray(cup.vertices), np.asarray(cup.faces)),
+    images = depth_views.render(depth_views.with_table(np.asarray(cup.vertices), np.asarray(cup.faces)),
                                 depth_views.table_views([0.0, 0.0, 0.045], 2, np.random.default_rng(0)))
     np.savez(work / "seen.npz", depth=images.depth, K=images.K, T_world_camera=images.T_world_camera, mask=images.mask)
     seen = _run([zoo_command, "fit-codes", "mugs", "--depth", work / "seen.npz", "--out", work / "seen.safetensors",

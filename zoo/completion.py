@@ -34,7 +34,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -46,6 +46,7 @@ GRID_HALF_WIDTH = 0.6  # the prior grids cover [-0.6, 0.6]^3 of the normalised f
 PRIOR_FORMAT = 2  # bump when CategoryPrior's content changes: old cache files are then ignored
 PLANE_FRACTION = 0.02  # points thinner than this fraction of their extent across their best plane are a plane
 CODE_CHOICES = ("fit", "nearest", "mean")
+EVALUATION_DRAW = 4  # the final loss that ranks hypotheses reads this many times a step's samples
 
 
 @dataclass(frozen=True)
@@ -97,10 +98,6 @@ class CategoryPrior:
     mean_positions: torch.Tensor
     code_std: float
     position_std: float
-
-    @property
-    def names_count(self) -> int:
-        return self.grids.shape[0]
 
 
 def category_prior(model, resolution: int = 32, progress: bool = False) -> CategoryPrior:
@@ -296,16 +293,17 @@ def _near_part(origins: np.ndarray, ends: np.ndarray, centre: np.ndarray, reach:
     return np.stack([origins[ok] + unit[ok] * start[ok, None], origins[ok] + unit[ok] * stop[ok, None]], axis=1)
 
 
-def _draw(evidence: _Evidence, options: FitOptions, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """A step's surface points (P, 3) and free samples (Q, 3), drawn with ``generator``."""
+def _draw(evidence: _Evidence, points: int, free_points: int, generator: torch.Generator
+          ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``points`` surface points (P, 3) and about ``free_points`` free samples (Q, 3), drawn with ``generator``."""
     n = len(evidence.points)
-    points = evidence.points[torch.randint(n, (min(options.points, n),), generator=generator)]
+    surface = evidence.points[torch.randint(n, (min(points, n),), generator=generator)]
     if not evidence.segments:
-        return points, None
-    share = -(-options.free_points // len(evidence.segments))
+        return surface, None
+    share = -(-free_points // len(evidence.segments))
     seg = torch.cat([kind[torch.randint(len(kind), (share,), generator=generator)] for kind in evidence.segments])
     t = torch.rand(len(seg), 1, generator=generator)
-    return points, seg[:, 0] + t * (seg[:, 1] - seg[:, 0])
+    return surface, seg[:, 0] + t * (seg[:, 1] - seg[:, 0])
 
 
 def _loss_terms(f_surface: torch.Tensor, f_free: torch.Tensor | None, sigma: float, kinds: int
@@ -399,6 +397,20 @@ def _grid_distance(grids: torch.Tensor, points_n: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
+class _Refined:
+    """A hypothesis after the network's refinement: its loss (and terms), pose and code cloud (K, C), (K, 3)."""
+
+    loss: float
+    terms: dict[str, float]
+    rotation: np.ndarray  # (3, 3) world to normalised
+    scale: float  # normalised units per metre
+    centre: np.ndarray  # (3,) world
+    yaw: float
+    codes: torch.Tensor
+    positions: torch.Tensor
+
+
+@dataclass
 class _Hypothesis:
     """One (shape, starting yaw) outcome: its pose after the search, and its loss."""
 
@@ -407,7 +419,7 @@ class _Hypothesis:
     poses: _Poses
     loss: float
     yaw: float  # the yaw the search ended on (the poses move on if the hypothesis is refined)
-    refined: dict = field(default_factory=dict)
+    refined: _Refined | None = None
 
 
 def fit_observation(model, obs: Observation, up=(0.0, 0.0, 1.0), options: FitOptions | None = None,
@@ -439,13 +451,10 @@ def fit_observation(model, obs: Observation, up=(0.0, 0.0, 1.0), options: FitOpt
         chosen = _distinct_yaws(searched, refined)
         for h in chosen:
             h.refined = _refine(model, prior, h, evidence, align_t, options, generator, bar)
-    best = min(chosen, key=lambda h: h.refined["loss"])
-    rotation = best.refined["rotation"]
-    scale = best.refined["scale"]
-    centre = best.refined["centre"]
-    similarity = Similarity(scale, rotation, -scale * rotation @ centre)
-    shape = NeuralShape(name, model.sdf.decoder, model.sdf.config, best.refined["codes"], best.refined["positions"],
-                        similarity, model)
+    best = min(chosen, key=lambda h: h.refined.loss)
+    fitted = best.refined
+    similarity = Similarity(fitted.scale, fitted.rotation, -fitted.scale * fitted.rotation @ fitted.centre)
+    shape = NeuralShape(name, model.sdf.decoder, model.sdf.config, fitted.codes, fitted.positions, similarity, model)
     shape.fit = _record(model, obs, up, options, searched, chosen, best, shape, time.perf_counter() - started)
     return shape
 
@@ -474,15 +483,14 @@ def _grid_search(prior: CategoryPrior, shapes: list[int], evidence: _Evidence, o
     groups[2]["lr"] = 0.02 * obs.extent
     optimiser = torch.optim.Adam(groups)
     for _ in range(options.grid_iters):
-        points, free = _draw(evidence, options, generator)
+        points, free = _draw(evidence, options.points, options.free_points, generator)
         loss = _grid_loss(grids, z_low, poses, points, free, align_t, evidence, options.sigma)
         optimiser.zero_grad(set_to_none=True)
         loss.sum().backward()
         optimiser.step()
         bar.advance()
     with torch.no_grad():
-        points, free = _draw(evidence, FitOptions(points=4 * options.points, free_points=4 * options.free_points,
-                                                  codes=options.codes), generator)
+        points, free = _draw(evidence, EVALUATION_DRAW * options.points, EVALUATION_DRAW * options.free_points, generator)
         final = _grid_loss(grids, z_low, poses, points, free, align_t, evidence, options.sigma)
     final = final.reshape(len(shapes), options.yaws)
     out = []
@@ -506,19 +514,20 @@ def _distinct_yaws(hypotheses: list[_Hypothesis], count: int) -> list[_Hypothesi
     """The ``count`` best hypotheses whose fitted yaws differ by more than 30 degrees (or whose shapes differ)."""
     chosen = []
     for h in sorted(hypotheses, key=lambda h: h.loss):
-        if all(h.shape != c.shape or _angle_between(h.yaw, c.yaw) > math.radians(30) for c in chosen):
+        if all(h.shape != c.shape or angle_between(h.yaw, c.yaw) > math.radians(30) for c in chosen):
             chosen.append(h)
         if len(chosen) == count:
             break
     return chosen
 
 
-def _angle_between(a: float, b: float) -> float:
+def angle_between(a: float, b: float) -> float:
+    """The angle (radians, in [0, pi]) between two directions given as angles (radians) in a plane."""
     return abs((a - b + math.pi) % (2 * math.pi) - math.pi)
 
 
 def _refine(model, prior: CategoryPrior, h: _Hypothesis, evidence: _Evidence, align_t: torch.Tensor,
-            options: FitOptions, generator: torch.Generator, bar) -> dict:
+            options: FitOptions, generator: torch.Generator, bar) -> _Refined:
     """Pose (and, with ``codes="fit"``, the code cloud) of one hypothesis refined through the network."""
     from .neural import decode
 
@@ -553,28 +562,27 @@ def _refine(model, prior: CategoryPrior, h: _Hypothesis, evidence: _Evidence, al
                                       + (positions - positions0).square().mean() / prior.position_std**2)
         terms = {"surface": surface.sum(), "free_space": free_term.sum(),
                  "support": _support_term(evidence, poses, z_low, options.sigma).sum(),
-                 "prior": code_prior if learn_codes else surface.sum() * 0}
+                 "prior": code_prior if learn_codes else torch.zeros(())}
         return sum(terms.values()), terms
 
     try:
         for _ in range(options.refine_iters):
-            points, free = _draw(evidence, options, generator)
+            points, free = _draw(evidence, options.points, options.free_points, generator)
             loss, _ = loss_of(points, free)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
             bar.advance()
         with torch.no_grad():
-            points, free = _draw(evidence, FitOptions(points=4 * options.points, free_points=4 * options.free_points,
-                                                      codes=options.codes), generator)
+            points, free = _draw(evidence, EVALUATION_DRAW * options.points, EVALUATION_DRAW * options.free_points,
+                                 generator)
             loss, terms = loss_of(points, free)
     finally:
         for p, r in zip(decoder.parameters(), frozen):
             p.requires_grad_(r)
-    return {"loss": float(loss), "terms": {k: float(v) for k, v in terms.items()},
-            "rotation": poses.rotation(align_t.to(poses.yaw)).detach()[0].double().numpy(),
-            "scale": float(poses.log_scale.detach().exp()), "centre": poses.centre.detach()[0].double().numpy(),
-            "yaw": float(poses.yaw.detach()), "codes": codes.detach(), "positions": positions.detach()}
+    return _Refined(float(loss), {k: float(v) for k, v in terms.items()},
+                    poses.rotation(align_t.to(poses.yaw)).detach()[0].double().numpy(), float(poses.log_scale.detach().exp()),
+                    poses.centre.detach()[0].double().numpy(), float(poses.yaw.detach()), codes.detach(), positions.detach())
 
 
 def _record(model, obs: Observation, up: np.ndarray, options: FitOptions, searched: list[_Hypothesis],
@@ -587,8 +595,8 @@ def _record(model, obs: Observation, up: np.ndarray, options: FitOptions, search
     def pose_of(h: _Hypothesis) -> dict:
         out = {"start_shape": names[h.shape], "start_yaw_deg": round(math.degrees(h.start_yaw), 3),
                "yaw_deg": round(math.degrees(h.yaw) % 360.0, 3), "search_loss": h.loss}
-        if h.refined:
-            out.update(refined_loss=h.refined["loss"], refined_yaw_deg=round(math.degrees(h.refined["yaw"]) % 360.0, 3))
+        if h.refined is not None:
+            out.update(refined_loss=h.refined.loss, refined_yaw_deg=round(math.degrees(h.refined.yaw) % 360.0, 3))
         return out
 
     return {
@@ -600,10 +608,10 @@ def _record(model, obs: Observation, up: np.ndarray, options: FitOptions, search
                   "code_std": model._category_prior[1].code_std, "start_shape": names[best.shape]},
         "options": {"yaws": options.yaws, "grid_iters": options.grid_iters, "refine_iters": options.refine_iters,
                     "sigma_m": options.sigma, "seed": options.seed},
-        "loss": {"total": best.refined["loss"], **best.refined["terms"]},
-        "pose": {**pose_of(best), "centre_m": best.refined["centre"].tolist()},
+        "loss": {"total": best.refined.loss, **best.refined.terms},
+        "pose": {**pose_of(best), "centre_m": best.refined.centre.tolist()},
         "rejected": [pose_of(h) for h in searched if h is not best],
-        "scale": {"normalised_per_m": best.refined["scale"], "size_m": 1.0 / best.refined["scale"]},
+        "scale": {"normalised_per_m": best.refined.scale, "size_m": 1.0 / best.refined.scale},
         "residual_mm": {"median": float(np.median(residual) * 1e3), "p90": float(np.percentile(residual, 90) * 1e3)},
         "seconds": seconds,
     }
