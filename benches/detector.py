@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from zoo.amortized import detect
@@ -98,10 +99,13 @@ def bench_triangles(shapes, config: BenchConfig, sampler=None) -> list[torch.Ten
     """Per shape, ``n_per_shape`` fresh triangles (normalised frame) under the paper's four conditions."""
     if sampler is None:
         from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles as sampler
-    from sdfzoo.pipeline.triangles import shape_seed
-
-    return [torch.as_tensor(sampler(s.normalised, config.n_per_shape, seed=shape_seed(config.seed, i), batch=16384)).float()
+    return [torch.as_tensor(sampler(s.normalised, config.n_per_shape, seed=bench_seed(config.seed, i), batch=16384)).float()
             for i, s in enumerate(shapes)]
+
+
+def bench_seed(seed: int, index: int) -> int:
+    """The seed of the ``index``-th bench shape's triangles (by position: the bench's shape lists are fixed)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
 
 
 # --------------------------------------------------------------------------- metrics

@@ -322,7 +322,7 @@ def _fit_extremes() -> tuple[dict, bool]:
             optimizer = make_optimizer(model, config)
             values, norms = [], []
             for step in range(config.steps):
-                values.append(train_step(model, model, optimizer, data, config, step, 0, 1, "cpu"))
+                values.append(train_step(model, optimizer, data, config, step))
                 norms.append(float(torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in model.parameters() if p.grad is not None]))))
             finite = all(math.isfinite(x) for x in values + norms) and all(bool(torch.isfinite(p).all()) for p in model.parameters())
             out[f"{name} / {lname}"] = {"losses": values, "max_grad_norm": max(norms), "finite": finite}

@@ -9,7 +9,8 @@ A manifest is ``manifests/categories/<name>.toml``::
     stem = "hoi4d_mug_0001"  file = "mug/hoi4d_mug_0001.obj"  sha256 = "..."
     split = "train"  source = "hoi4d"  license = "..."   # optional: up = "y" overrides the source's
 
-``file`` is relative to the data folder, which comes from an explicit argument or ``$ZOO_DATA``.
+``file`` is relative to the data folder, which comes from an explicit argument, else the manifest's
+top-level ``data = "DIR"`` (relative to the manifest's folder; ``zoo manifest`` writes it), else ``$ZOO_DATA``.
 The meshes themselves are never part of the project.
 """
 
@@ -51,6 +52,7 @@ class Category:
     meshes: dict[str, MeshEntry]
     sources: dict[str, dict]
     manifest: Path
+    data_dir: Path | None = None  # the manifest's own data folder, if it names one
 
     def stems(self, split: str | None = None) -> list[str]:
         """Sorted stems of one split ("train", "test", "scene"), or of all when ``split`` is None."""
@@ -120,7 +122,9 @@ def load_category(category: str | os.PathLike, manifest_dir: str | os.PathLike |
         meshes[entry.stem] = entry
     if not meshes:
         raise DataError(f"{path} lists no meshes; add [[mesh]] tables")
-    return Category(doc.get("category", path.stem), doc.get("description", ""), meshes, sources, path)
+    data = doc.get("data")
+    data_dir = (path.parent / data).resolve() if isinstance(data, str) and data else None
+    return Category(doc.get("category", path.stem), doc.get("description", ""), meshes, sources, path, data_dir)
 
 
 def _mesh_entry(row: dict, sources: dict, path: Path, i: int) -> MeshEntry:
@@ -142,7 +146,10 @@ def _mesh_entry(row: dict, sources: dict, path: Path, i: int) -> MeshEntry:
 
 
 def resolve_data_dir(data_dir: str | os.PathLike | None = None, category: Category | None = None) -> Path:
-    """The data folder: ``data_dir`` if given, else ``$ZOO_DATA``; checked to hold the category's folders."""
+    """The data folder: ``data_dir`` if given, else the manifest's, else ``$ZOO_DATA``; checked to hold the
+    category's folders."""
+    if data_dir is None and category is not None:
+        data_dir = category.data_dir
     if data_dir is None:
         data_dir = os.environ.get(DATA_ENV)
         if not data_dir:
@@ -166,16 +173,18 @@ def verify_meshes(category: Category, data_dir: str | os.PathLike | None = None,
     A missing or changed mesh is a :class:`DataError` naming the file and both hashes.
     """
     root = resolve_data_dir(data_dir, category)
-    out = {}
-    for stem in category.stems() if stems is None else stems:
-        entry = category.entry(stem)
-        path = root / entry.file
-        if not path.is_file():
-            raise DataError(f"mesh {path} of category {category.name!r} is missing (expected sha256 {entry.sha256}); "
-                            "restore it in the data folder")
-        actual = sha256_file(path)
-        if actual != entry.sha256:
-            raise DataError(f"mesh {path} has changed: sha256 {actual}, but {category.manifest.name} expects {entry.sha256}; "
-                            "restore the original file, or update the manifest if the change is intended")
-        out[stem] = path
-    return out
+    return {stem: verified_mesh(category, root, stem) for stem in (category.stems() if stems is None else stems)}
+
+
+def verified_mesh(category: Category, root: Path, stem: str) -> Path:
+    """The file of mesh ``stem`` under the data folder ``root``, checked against its recorded sha256."""
+    entry = category.entry(stem)
+    path = root / entry.file
+    if not path.is_file():
+        raise DataError(f"mesh {path} of category {category.name!r} is missing (expected sha256 {entry.sha256}); "
+                        "restore it in the data folder")
+    actual = sha256_file(path)
+    if actual != entry.sha256:
+        raise DataError(f"mesh {path} has changed: sha256 {actual}, but {category.manifest.name} expects {entry.sha256}; "
+                        "restore the original file, or update the manifest if the change is intended")
+    return path

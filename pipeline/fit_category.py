@@ -22,20 +22,23 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
 
+from zoo.errors import DataError
 from zoo.files import atomic_path
-from zoo.validation import as_device, int_at_least
+from zoo.validation import int_at_least
 
+from .distributed import World, join_world, leave_world, run_stage_together
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
 from .fit_sdf import FitConfig, fit_sdf, load_training_data, print_log, save_result
 from .fit_sdf import preset as fit_preset
+from .per_mesh import SET_ASIDE_FILE, SetAside, for_each_mesh, write_set_aside
 from .presets import Presets
 from .samples import SampleConfig, prepare_mesh
-from .stages import Stage, run_stage
+from .stages import Stage, provenance
 
 # --------------------------------------------------------------------------- presets
 
@@ -49,10 +52,9 @@ class Preset:
     fit: FitConfig
     evaluation: EvalConfig
     max_shapes: int | None = None
-    # training length scaled to the category: steps = steps_per_shape x shapes, within
-    # [min_steps, fit.steps]; None trains fit.steps whatever the number of shapes
-    steps_per_shape: float | None = None
-    min_steps: int = 0
+    # training length in epochs: how many times, on average, each shape's samples are seen; the steps
+    # follow from the category's size and the number of processes (None: fit.steps whatever they are)
+    epochs: float | None = None
     steps: int | None = None  # ``--steps``: train exactly this many steps, whatever the rules above give
 
     @property
@@ -60,41 +62,61 @@ class Preset:
         """The `zoo fit-category` options that select this preset."""
         return f"--preset {self.name}" + ("" if self.steps is None else f" --steps {self.steps}")
 
-    def fit_config(self, n_shapes: int) -> FitConfig:
-        """The training config for a category of ``n_shapes`` train shapes."""
-        if self.steps is not None:
-            return replace(self.fit, steps=self.steps)
-        if self.steps_per_shape is None:
-            return self.fit
-        steps = int(round(self.steps_per_shape * n_shapes))
-        return replace(self.fit, steps=max(self.min_steps, min(self.fit.steps, steps)))
+    def epoch_steps(self, n_shapes: int, processes: int = 1) -> int:
+        """Steps that show each of ``n_shapes`` shapes' samples ``epochs`` times (or fit.steps without epochs)."""
+        if self.epochs is None:
+            return self.fit.steps
+        per_step = processes * min(self.fit.shapes_per_step, n_shapes) * self.fit.points_per_shape
+        return max(1, int(round(self.epochs * n_shapes * self.samples.n_points / per_step)))
+
+    def epochs_seen(self, steps: int, n_shapes: int, processes: int = 1) -> float:
+        """How many times ``steps`` steps show each shape's samples, on average."""
+        per_step = processes * min(self.fit.shapes_per_step, n_shapes) * self.fit.points_per_shape
+        return steps * per_step / (n_shapes * self.samples.n_points)
+
+    def fit_config(self, n_shapes: int, processes: int = 1) -> FitConfig:
+        """The training config for a category of ``n_shapes`` train shapes on ``processes`` processes."""
+        return replace(self.fit, steps=self.steps if self.steps is not None else self.epoch_steps(n_shapes, processes))
 
 
 PRESETS = Presets(
     "fit-category",
     # a pipeline check for tests and CI: four shapes, a small network, well under a minute of training
     quick=Preset("quick", SampleConfig(n_points=20_000), fit_preset("quick"),
-                    EvalConfig(n_near=2_000, n_uniform=2_000), max_shapes=4),
+                 EvalConfig(n_near=2_000, n_uniform=2_000), max_shapes=4, epochs=2.56),
     # the shipped models: every train shape; see pipeline.fit_sdf.PRESETS["default"] for the budget
     # 100k samples per shape: training visits ~300k points per shape, and exact SDF sampling of
     # 54 meshes at 250k points each took longer than the training budget on the shared machine
-    # 37 steps per shape (each shape in ~300 batches of 8): 2000 steps for the 54 mugs (~30-40 min
-    # on the shared 2-core machine), 740 for the 20 bottles
+    # each shape's 100k samples seen about 6 times: 2000 steps of 8 shapes x 2048 points for the 54 mugs
+    # (~30-40 min on the shared 2-core machine), 741 for the 20 bottles
     default=Preset("default", SampleConfig(n_points=100_000), fit_preset("default"),
-                   EvalConfig(n_near=10_000, n_uniform=10_000), steps_per_shape=37.1, min_steps=600),
+                   EvalConfig(n_near=10_000, n_uniform=10_000), epochs=6.07),
     # small categories of parts with sub-millimetre detail (a bolt's thread, gear teeth), where default's 600
     # steps leave the NeuralSDF off the mesh by more than a part's clearance: samples 2.5x denser and 60% of
     # them in a band of sigma 0.002 (0.1 mm on an M16 bolt), and a decoder that also sees 8 levels of Fourier
-    # features of the position; 3000 steps of 3 shapes x 4096 points (about 20 minutes on one core of the
-    # 2-core machine for the bolts; docs/sim-scenarios.md gives what it reached, and what it did without them)
+    # features of the position; each shape's samples seen about 49 times: 3000 steps of 3 shapes x 4096 points
+    # for the 3 bolts (about 20 minutes on one core of the 2-core machine; docs/sim-scenarios.md gives what it
+    # reached, and what it did without them)
     fine=Preset("fine", SampleConfig(n_points=250_000, near_sigmas=(0.002, 0.02), fractions=(0.6, 0.3, 0.1)),
                 replace(fit_preset("default"), sdf=replace(fit_preset("default").sdf, fourier_levels=8), steps=3000,
                         shapes_per_step=3, points_per_shape=4096, checkpoint_every=200),
-                EvalConfig(n_near=10_000, n_uniform=10_000)),
+                EvalConfig(n_near=10_000, n_uniform=10_000), epochs=49.152),
 )
 
 
 # --------------------------------------------------------------------------- the run
+
+
+@dataclass
+class StageReport:
+    """One line of the run's closing table."""
+
+    stage: str
+    meshes: int
+    seconds: float
+    peak_memory_mb: float  # this process's peak resident memory during the stage (rank 0's)
+    set_aside: int
+    ran: bool
 
 
 @dataclass
@@ -109,8 +131,11 @@ class FitRun:
     device: str = "cpu"
     progress: bool = True
     version: str = "0.1.0"
-    stems: list[str] = field(default_factory=list)
+    world: World = field(default_factory=World)
+    strict: bool = False  # a mesh that fails ends the run, instead of being set aside
+    stems: list[str] = field(default_factory=list)  # the train meshes still in the run
     mesh_paths: dict[str, Path] = field(default_factory=dict)
+    set_aside: list[SetAside] = field(default_factory=list)
     sample_files: list[Path] = field(default_factory=list)
     fit_file: Path | None = None
     model: object = None  # zoo.model.Model, after fit-sdf
@@ -118,31 +143,66 @@ class FitRun:
     detector: object = None  # set by a detector stage
     detector_info: dict = field(default_factory=dict)
     ran: dict[str, bool] = field(default_factory=dict)  # stage name -> whether it did work (False: cached)
+    reports: list[StageReport] = field(default_factory=list)
     log: Callable[[str], None] = print
 
     @property
     def fit_dir(self) -> Path:
         return self.work_dir / "fit" / self.preset.name
 
+    @property
+    def set_aside_file(self) -> Path:
+        return self.work_dir / SET_ASIDE_FILE
+
+    def each_mesh(self, stage: str, work: Callable[[str], object]) -> dict:
+        """``work(stem)`` on every mesh of the run, shared out over the ranks; meshes that fail are set aside
+        (and leave ``stems``); -> {stem: result} of the meshes that finished, on every rank."""
+        results = for_each_mesh(self.world, stage, self.stems, work, self.strict, self.progress)
+        self.set_aside += results.set_aside
+        self.stems = [s for s in self.stems if s in results.done]
+        if not self.stems:
+            raise DataError(f"every mesh of {self.category.name!r} was set aside at stage {stage!r}; the first: "
+                            f"{self.set_aside[0].stem}: {self.set_aside[0].reason}")
+        return results.done
+
+    def restore_set_aside(self, rows: list[dict]) -> None:
+        """What a cached stage had set aside when it ran ({stem, stage, reason} rows): listed again, out of ``stems``."""
+        known = {s.stem for s in self.set_aside}
+        self.set_aside += [SetAside(**row) for row in rows if row["stem"] not in known]
+        gone = {row["stem"] for row in rows}
+        self.stems = [s for s in self.stems if s not in gone]
+
 
 StageFn = Callable[[FitRun], bool]  # returns True when it did work, False when it was cached
 
 
+@dataclass(frozen=True)
+class PreparedMesh:
+    """A train mesh after the samples stage: its samples file, and whether this run (re)made it."""
+
+    samples: Path
+    ran: bool
+
+
 def stage_samples(run: FitRun) -> bool:
-    """Normalise and sample each training mesh (each one cached on its own)."""
-    from .categories import verify_meshes
+    """Normalise and sample each training mesh (each one cached on its own; shared out over the ranks)."""
+    from .categories import verified_mesh
 
     stems = run.category.stems("train")
     if run.preset.max_shapes:
         stems = stems[: run.preset.max_shapes]
     run.stems = stems
-    run.mesh_paths = verify_meshes(run.category, run.data_dir, stems)
-    before = {s: _lock_mtime(run.work_dir, s) for s in stems}
-    run.sample_files = [
-        prepare_mesh(run.mesh_paths[s], run.work_dir, run.preset.samples, up=run.category.entry(s).up, stem=s)
-        for s in stems
-    ]
-    return any(_lock_mtime(run.work_dir, s) != before[s] for s in stems)
+    run.mesh_paths = {s: run.data_dir / run.category.entry(s).file for s in stems}
+
+    def prepare(stem: str) -> PreparedMesh:
+        path = verified_mesh(run.category, run.data_dir, stem)
+        before = _lock_mtime(run.work_dir, stem)
+        out = prepare_mesh(path, run.work_dir, run.preset.samples, up=run.category.entry(stem).up, stem=stem)
+        return PreparedMesh(out, _lock_mtime(run.work_dir, stem) != before)
+
+    done = run.each_mesh("samples", prepare)
+    run.sample_files = [done[s].samples for s in run.stems]
+    return any(p.ran for p in done.values())
 
 
 def _lock_mtime(work_dir: Path, stem: str):
@@ -151,23 +211,36 @@ def _lock_mtime(work_dir: Path, stem: str):
 
 
 def stage_fit_sdf(run: FitRun) -> bool:
-    """Train the category NeuralSDF (resuming from its checkpoint after an interruption)."""
+    """Train the category NeuralSDF under DDP on every rank (resuming from its checkpoint after an interruption)."""
     out = run.fit_dir / "sdf.pt"
     checkpoint = run.fit_dir / "checkpoint.pt"
-    config = run.preset.fit_config(len(run.stems))
-    stage = Stage("fit-sdf", {p.stem: p for p in run.sample_files}, {"fit": config.to_dict(), "stems": run.stems},
+    config = run.preset.fit_config(len(run.stems), run.world.size)
+    _warn_short_training(run, config)
+    stage = Stage("fit-sdf", {p.stem: p for p in run.sample_files},
+                  {"fit": config.to_dict(), "stems": run.stems, "processes": run.world.size},
                   {"fit": out}, code=("pipeline.fit_sdf", stage_fit_sdf))
 
     def build():
         data = load_training_data(run.sample_files)
         result = fit_sdf(data, config, checkpoint, device=run.device, progress=run.progress,
                          log=None if run.progress else print_log)
-        save_result(out, result, data, config)
+        if run.world.main:
+            save_result(out, result, data, config)
 
-    did = run_stage(stage, build)
+    did = run_stage_together(run.world, stage, build)
     run.fit_file = out
     run.model = model_from_fit(out, run)
     return did
+
+
+def _warn_short_training(run: FitRun, config: FitConfig) -> None:
+    """Say so before training when ``--steps`` shows each shape's samples fewer times than the preset intends."""
+    intended = run.preset.epoch_steps(len(run.stems), run.world.size)
+    if run.world.main and config.steps < intended:
+        seen = run.preset.epochs_seen(config.steps, len(run.stems), run.world.size)
+        wanted = run.preset.epochs_seen(intended, len(run.stems), run.world.size)
+        run.log(f"warning: {config.steps} steps show each of the {len(run.stems)} shapes' samples {seen:.2f} times; "
+                f"preset {run.preset.name!r} intends {wanted:.2f} ({intended} steps). Drop --steps for the preset's length.")
 
 
 def model_from_fit(path: Path, run: FitRun):
@@ -187,31 +260,36 @@ def model_from_fit(path: Path, run: FitRun):
 
 
 def stage_evaluate(run: FitRun) -> bool:
-    """Compare every fitted train shape with its mesh's exact SDF, in the source frame."""
+    """Compare every fitted train shape with its mesh's exact SDF, in the source frame (shared out over the ranks)."""
     out = run.fit_dir / "metrics.json"
     ev = run.preset.evaluation
-    stage = Stage("evaluate", {"fit": run.fit_file, **run.mesh_paths}, {"evaluation": ev.to_dict()}, {"metrics": out},
-                  code=("pipeline.evaluate_sdf", stage_evaluate))
+    stage = Stage("evaluate", {"fit": run.fit_file, **{s: run.mesh_paths[s] for s in run.stems}}, {"evaluation": ev.to_dict()}, {"metrics": out},
+                  code=("pipeline.evaluate_sdf", "zoo.model", stage_evaluate))
 
     def build():
         from zoo.meshes import load_mesh
 
-        per_shape = {}
-        for stem in run.stems:
-            per_shape[stem] = evaluate_shape(run.model.shape(stem), load_mesh(run.mesh_paths[stem]), ev)
+        before = len(run.set_aside)
+        per_shape = run.each_mesh("evaluate", lambda stem: evaluate_shape(run.model.shape(stem),
+                                                                          load_mesh(run.mesh_paths[stem]), ev))
         metrics = {"train": summarise(per_shape), "per_shape": per_shape,
                    "command": f"zoo fit-category {run.category.name} {run.preset.options}",
-                   "evaluation": ev.to_dict()}
-        with atomic_path(out) as tmp:
-            Path(tmp).write_text(json.dumps(metrics, indent=1, sort_keys=True))
+                   "evaluation": ev.to_dict(), "set_aside": [asdict(s) for s in run.set_aside[before:]]}
+        if run.world.main:
+            with atomic_path(out) as tmp:
+                Path(tmp).write_text(json.dumps(metrics, indent=1, sort_keys=True))
 
-    did = run_stage(stage, build)
+    did = run_stage_together(run.world, stage, build)
     run.metrics = json.loads(out.read_text())
+    if not did:  # the meshes this stage set aside when it ran
+        run.restore_set_aside(run.metrics.get("set_aside", []))
     return did
 
 
 def stage_package(run: FitRun) -> bool:
-    """Write the package directory (config.json, sdf.safetensors, [detector.safetensors], SHA256SUMS)."""
+    """Write the package directory (config.json, sdf.safetensors, [detector.safetensors], SHA256SUMS); rank 0 alone."""
+    if not run.world.main:
+        return False
     _remove_temporaries(run.out_dir)
     model = run.model
     model.detector = run.detector.requires_grad_(False).eval() if run.detector is not None else None
@@ -222,6 +300,9 @@ def stage_package(run: FitRun) -> bool:
         "split": "train",
         "inputs": {s: run.category.entry(s).sha256 for s in run.stems},
         "preset": run.preset.name,
+        "set_aside": [asdict(s) for s in run.set_aside],
+        "processes": run.world.size,
+        "sdfzoo": provenance(),
     }
     kwargs = dict(fp16=True, metrics=metrics, license=license_of(run), training_data=training_data,
                   category=run.category.name, extra={"metrics_command": run.metrics.get("command", "")})
@@ -278,30 +359,90 @@ def add_stage(name: str, fn: StageFn, before: str = "package") -> None:
 # --------------------------------------------------------------------------- entry point
 
 
-def fit_category(category: str, data_dir: str | os.PathLike | None = None, preset: str = "default",
+def fit_category(category: str | os.PathLike, data_dir: str | os.PathLike | None = None, preset: str = "default",
                  out_dir: str | os.PathLike | None = None, work_dir: str | os.PathLike | None = None,
                  device: str = "cpu", progress: bool = True, log: Callable[[str], None] = print,
-                 steps: int | None = None) -> FitRun:
+                 steps: int | None = None, strict: bool = False, max_shapes: int | None = None) -> FitRun:
     """Run every stage of :data:`STAGES` for ``category``; return the finished run (``run.model``, ``run.out_dir``).
 
-    Defaults: ``out_dir`` = out/CATEGORY, ``work_dir`` = runs/CATEGORY (caches, checkpoints); ``steps`` replaces
-    the preset's training length.
+    ``category`` is a bundled category's name or a manifest file (``zoo manifest`` writes one). Defaults:
+    ``out_dir`` = out/CATEGORY, ``work_dir`` = runs/CATEGORY (caches, checkpoints); ``steps`` replaces the
+    preset's training length; ``max_shapes`` its number of train shapes (0: all). A mesh that fails is set
+    aside (listed at the end, in WORK/set-aside.json and in the package's config), unless ``strict``.
+    Under torchrun (``WORLD_SIZE`` > 1) every process calls this: the stages share the work out
+    (:mod:`pipeline.distributed`); the work folder must be one that every process sees.
     """
     from .categories import load_category, resolve_data_dir
 
-    as_device(device)  # before any stage runs: a missing GPU is a typed error, not a late AssertionError
+    world = join_world(device)  # checks the device first: a missing GPU is a typed error, not a late AssertionError
     cat = load_category(category)
     p = PRESETS.lookup(preset)
     if steps is not None:
         p = replace(p, steps=int_at_least(steps, "steps", 1))
+    if max_shapes is not None:
+        p = replace(p, max_shapes=int_at_least(max_shapes, "max_shapes", 0) or None)
     run = FitRun(cat, resolve_data_dir(data_dir, cat), Path(work_dir or Path("runs") / cat.name),
-                 Path(out_dir or Path("out") / cat.name), p, device=device, progress=progress, log=log)
-    for name, fn in STAGES:
-        t0 = time.perf_counter()
-        did = fn(run)
-        run.ran[name] = bool(did)
-        log(f"{name}: {'done' if did else 'up to date, skipped'} ({time.perf_counter() - t0:.1f} s)")
+                 Path(out_dir or Path("out") / cat.name), p, device=str(world.device), progress=progress,
+                 world=world, strict=strict, log=log if world.main else _silent)
+    try:
+        for name, fn in STAGES:
+            run_timed(run, name, fn)
+        if world.main:
+            write_set_aside(run.set_aside_file, run.set_aside)
+            log(summary_table(run))
+    finally:
+        leave_world(world)
     return run
+
+
+def _silent(line: str) -> None:
+    """The log of ranks other than 0: rank 0 speaks for the run."""
+
+
+def run_timed(run: FitRun, name: str, fn: StageFn) -> None:
+    """Run one stage, timing it and measuring this process's peak memory during it."""
+    reset_peak_memory()
+    before = len(run.set_aside)
+    meshes = len(run.stems)
+    t0 = time.perf_counter()
+    did = bool(fn(run))
+    seconds = time.perf_counter() - t0
+    run.ran[name] = did
+    run.reports.append(StageReport(name, meshes or len(run.stems), seconds, peak_memory_mb(),
+                                   len(run.set_aside) - before, did))
+    run.log(f"{name}: {'done' if did else 'up to date, skipped'} ({seconds:.1f} s)")
+
+
+def summary_table(run: FitRun) -> str:
+    """The closing table (stage, meshes, seconds, peak memory, set aside) and the set-aside meshes."""
+    lines = [f"{'stage':<18}{'meshes':>8}{'seconds':>10}{'peak MB':>10}{'set aside':>11}"]
+    lines += [f"{r.stage:<18}{r.meshes:>8}{r.seconds:>10.1f}{r.peak_memory_mb:>10.0f}{r.set_aside:>11}"
+              + ("" if r.ran else "  (cached)") for r in run.reports]
+    if run.set_aside:
+        lines.append(f"set aside ({len(run.set_aside)}; listed in {run.set_aside_file}):")
+        lines += [f"  {s.stem} at {s.stage}: {s.reason}" for s in run.set_aside]
+    return "\n".join(lines)
+
+
+def reset_peak_memory() -> None:
+    """Start a new peak of this process's resident memory (Linux; elsewhere the peak is the process's)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_memory_mb() -> float:
+    """This process's peak resident memory since :func:`reset_peak_memory`, in MB."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def fit_codes(model_spec: str, mesh: str | os.PathLike, out: str | os.PathLike | None = None, iters: int = 500,

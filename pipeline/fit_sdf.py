@@ -20,7 +20,6 @@ same trajectory as one (gloo on CPU, nccl on CUDA)::
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import time
@@ -32,8 +31,9 @@ from zoo.config import DictConfig
 from zoo.errors import DataError, InputError
 from zoo.files import atomic_path
 from zoo.neural import NeuralSDF, NeuralSDFConfig
-from zoo.validation import as_device, positive_float, positive_int
+from zoo.validation import positive_float, positive_int
 
+from .distributed import World, average_gradients, average_rows, join_world
 from .presets import Presets
 from .stages import code_digest
 from .training import Checkpoint, cosine_factor, data_digest, halving_factor, run_fingerprint, set_learning_rates, train_steps
@@ -162,23 +162,28 @@ def stack_samples(stems, points_list, sdf_list, similarities=None) -> TrainingDa
 def step_batch(data: TrainingData, config: FitConfig, step: int, rank: int = 0, world: int = 1):
     """This process's share of step ``step``'s batch: -> shape_index (b,), points (b, P, 3), sdf (b, P).
 
-    The global batch depends only on (seed, step); process ``rank`` takes every ``world``-th shape.
+    Each process takes a batch of its own, ``shapes_per_step`` shapes (at most the category's), so the
+    global batch grows with the number of processes; the learning rates stay the preset's (Adam's step
+    does not grow with the batch). The global batch depends only on (seed, step, world).
     """
     g = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
     n_shapes = len(data.stems)
     b = global_shapes_per_step(config, n_shapes, world)
-    shapes = torch.randperm(n_shapes, generator=g)[:b] if b <= n_shapes else torch.randint(n_shapes, (b,), generator=g)
+    shapes = torch.randperm(n_shapes, generator=g)[:b] if b <= n_shapes else _draw_shapes(n_shapes, b, world, g)
     u = torch.rand(b, config.points_per_shape, generator=g)
     rows = (u * data.counts[shapes].unsqueeze(1)).long()
-    mine = shapes[rank::world], rows[rank::world]
-    idx, r = mine
+    idx, r = shapes[rank::world], rows[rank::world]
     return idx, data.points[idx.unsqueeze(1), r], data.sdf[idx.unsqueeze(1), r]
 
 
+def _draw_shapes(n_shapes: int, b: int, world: int, g: torch.Generator) -> torch.Tensor:
+    """``b`` shapes for ``world`` processes when there are fewer than ``b``: each process's share distinct."""
+    return torch.stack([torch.randperm(n_shapes, generator=g)[: b // world] for _ in range(world)], 1).reshape(-1)
+
+
 def global_shapes_per_step(config: FitConfig, n_shapes: int, world: int) -> int:
-    """Shapes per step over all processes: at most the category's size, rounded up to a multiple of ``world``."""
-    b = min(config.shapes_per_step, n_shapes)
-    return int(math.ceil(b / world) * world)
+    """Shapes per step over all processes: ``shapes_per_step`` (at most the category's size) on each."""
+    return min(config.shapes_per_step, n_shapes) * world
 
 
 # --------------------------------------------------------------------------- the loss and the schedule
@@ -210,28 +215,6 @@ def fit_fingerprint(config: FitConfig, data: TrainingData) -> str:
     return run_fingerprint(config.to_dict(), data.fingerprint(), code_digest([__name__]))
 
 
-# --------------------------------------------------------------------------- distributed
-
-
-def distributed_context(device: str | torch.device):
-    """(rank, world, device) for this process; initialises the process group under torchrun."""
-    import torch.distributed as dist
-
-    as_device(device)  # an unusable device: a typed error, not torch's AssertionError
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return 0, 1, torch.device(device)
-    if not dist.is_initialized():
-        backend = "nccl" if torch.device(device).type == "cuda" else "gloo"
-        dist.init_process_group(backend)
-    rank = dist.get_rank()
-    device = torch.device(device)
-    if device.type == "cuda":
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", rank)))
-        torch.cuda.set_device(device)
-    return rank, dist.get_world_size(), device
-
-
 # --------------------------------------------------------------------------- training
 
 
@@ -252,7 +235,8 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
     process calls this; rank 0 alone writes checkpoints and shows progress. ``stop_after``
     ends the run early at that step (as an interruption would), for tests.
     """
-    rank, world, device = distributed_context(device)
+    world = join_world(device)
+    rank, device = world.rank, world.device
     torch.manual_seed(config.seed)
     model = NeuralSDF(config.sdf, len(data.stems), torch.Generator().manual_seed(config.seed)).to(device)
     optimizer = make_optimizer(model, config)
@@ -267,11 +251,10 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
         history, start = list(state["history"]), int(state["step"])
         if rank == 0:
             print(f"fit NeuralSDF: resuming from the checkpoint at step {start}/{config.steps}", file=sys.stderr, flush=True)
-    trainer = wrap_distributed(model, world, device)
     t0 = time.perf_counter()
 
     def step(i: int) -> str:
-        loss = train_step(trainer, model, optimizer, data, config, i, rank, world, device)
+        loss = train_step(model, optimizer, data, config, i, world)
         if (i + 1) % log_every == 0 or i + 1 == config.steps:
             history.append((i + 1, loss))
             if log is not None and rank == 0:
@@ -285,33 +268,32 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
     return FitResult(model, history, time.perf_counter() - t0, start)
 
 
-def wrap_distributed(model: NeuralSDF, world: int, device: torch.device):
-    if world <= 1:
-        return model
-    from torch.nn.parallel import DistributedDataParallel
+def train_step(model: NeuralSDF, optimizer, data: TrainingData, config: FitConfig, step: int,
+               world: World = World()) -> float:
+    """One Adam step on this process's batch; returns the mean loss over the processes.
 
-    return DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
-
-
-def train_step(trainer, model: NeuralSDF, optimizer, data: TrainingData, config: FitConfig, step: int,
-               rank: int, world: int, device) -> float:
-    """One Adam step on this process's share of the step's batch; returns the global mean loss."""
+    Across processes the decoder's gradient is averaged whole, and the codes' and positions' only in the
+    rows of the shapes some process's batch touched (:func:`pipeline.distributed.average_rows`).
+    """
     set_learning_rates(optimizer, lr_factor(config, step))
-    idx, points, target = step_batch(data, config, step, rank, world)
-    idx, points, target = idx.to(device), points.to(device), target.to(device)
-    optimizer.zero_grad(set_to_none=True)
-    pred = trainer(points, idx)
+    idx, points, target = step_batch(data, config, step, world.rank, world.size)
+    idx = idx.to(world.device)
+    points, target = points.to(world.device, non_blocking=True), target.to(world.device, non_blocking=True)
+    optimizer.zero_grad(set_to_none=False)  # dense zeros: the rows averaged across processes are indexed
+    pred = model(points, idx)
     loss = sdf_loss(pred, target, config)
     if config.code_reg:
         loss = loss + config.code_reg * model.codes[idx].square().sum(-1).mean()
     loss.backward()
+    average_gradients(model.decoder.parameters(), world)
+    average_rows([model.codes, model.positions], idx, world)
     optimizer.step()
     value = loss.detach()
-    if world > 1:
+    if world.distributed:
         import torch.distributed as dist
 
         dist.all_reduce(value)
-        value = value / world
+        value = value / world.size
     return float(value)
 
 

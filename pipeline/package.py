@@ -91,14 +91,25 @@ def dumps_toml(data: dict, header: str = "") -> str:
     return "\n".join(lines).lstrip("\n") + "\n"
 
 
+def _is_table_array(value) -> bool:
+    """A non-empty list of tables: written as ``[[key]]`` blocks (a manifest's meshes), not one long line."""
+    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
+
+
 def _emit_table(lines: list[str], prefix: list[str], table: dict) -> None:
-    inline = {k: v for k, v in table.items() if not isinstance(v, dict) or (v and _is_short_leaf(v))}
+    inline = {k: v for k, v in table.items()
+              if not (isinstance(v, dict) or _is_table_array(v)) or (isinstance(v, dict) and v and _is_short_leaf(v))}
     subtables = {k: v for k, v in table.items() if k not in inline}
     if prefix and (inline or not subtables):
         lines += ["", "[" + ".".join(_toml_key(k) for k in prefix) + "]"]
     lines += [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in inline.items()]
     for key, sub in subtables.items():
-        _emit_table(lines, prefix + [key], sub)
+        if isinstance(sub, dict):
+            _emit_table(lines, prefix + [key], sub)
+            continue
+        for row in sub:
+            lines += ["", "[[" + ".".join(_toml_key(k) for k in prefix + [key]) + "]]"]
+            lines += [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in row.items()]
 
 
 def toml_safe(value):

@@ -3,16 +3,21 @@
 A :class:`Stage` names its input files, its config (a JSON-able dict), the code it runs and its
 output files. The code is hashed, not versioned by hand (:func:`code_digest`): each entry of
 ``Stage.code`` is a module name, standing for the source of that module and of every module of
-``pipeline`` and ``zoo`` it imports (transitively, function-level imports included, since the
-stage may call them; ``zoo/__init__.py`` imports nothing eagerly, so importing ``zoo.neural``
-does not bring in ``zoo.collision``), or a function, standing for its own source (a stage's
-build function defined beside other stages). What is hashed is the code without its comments
+``pipeline`` and ``zoo`` it imports when it is imported (transitively; an import inside a function
+is not followed, so a stage names the modules it reaches that way itself: the samples stage does
+not hash the detector that some function of ``zoo.neural`` may import), or a function, standing
+for its own source (a stage's build function defined beside other stages). What is hashed is the code without its comments
 and docstrings (:func:`source_digest`): editing the code reruns the stage and, when its outputs
 change, the stages that read them; editing a comment or a docstring does not. After a successful run,
 :func:`run_stage` writes a lock record beside the outputs::
 
     {"stage": name, "code": [modules...], "code_sha256": "...", "config": {...}, "config_sha256": "...",
-     "inputs": {label: sha256}, "outputs": {label: sha256}}
+     "libraries": {name: version}, "inputs": {label: sha256}, "outputs": {label: sha256},
+     "sdfzoo": {"version": ..., "commit": ...}}
+
+``libraries`` are the versions of the third-party libraries whose results a stage's outputs hold
+(:data:`OUTPUT_LIBRARIES`): a new torch or libigl reruns the stage; ``sdfzoo`` is provenance only
+(which version and source commit wrote the outputs), not part of what must match.
 
 and the next :func:`run_stage` skips the build when a fresh record of the inputs and config
 matches it and every output still exists with its recorded sha256. The build function must
@@ -39,6 +44,44 @@ LOCK_SUFFIX = ".lock.json"
 # The project's own packages, whose sources a stage's code digest covers; third-party code is not hashed.
 PROJECT_PACKAGES = ("pipeline", "zoo")
 ROOT = Path(__file__).resolve().parent.parent
+# Distributions whose numbers end up in the stages' outputs: exact distances (libigl), meshes
+# (trimesh), arrays (numpy), networks (torch).
+OUTPUT_LIBRARIES = ("libigl", "numpy", "torch", "trimesh")
+
+
+@functools.cache
+def library_versions() -> dict[str, str]:
+    """{distribution: installed version} of :data:`OUTPUT_LIBRARIES` ("absent" where not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in OUTPUT_LIBRARIES:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "absent"
+    return out
+
+
+@functools.cache
+def provenance() -> dict[str, str]:
+    """Which sdfzoo wrote an output: {"version", "commit"}; the commit of the clone the code runs from
+    (with "+dirty" when its tracked files differ from it), "" for an installed wheel."""
+    import subprocess
+
+    import zoo
+
+    commit = ""
+    if (ROOT / ".git").exists():
+        try:
+            git = ["git", "-C", str(ROOT)]
+            commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10).stdout.strip()
+            dirty = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                   text=True, timeout=10).stdout.strip()
+            commit += "+dirty" if commit and dirty else ""
+        except (OSError, subprocess.SubprocessError):
+            commit = ""
+    return {"version": zoo.__version__, "commit": commit}
 
 
 # --------------------------------------------------------------------------- code digests
@@ -72,13 +115,23 @@ def module_file(name: str, root: Path | None = None) -> Path | None:
     return None
 
 
+def _import_time_nodes(tree: ast.Module):
+    """The nodes that run when the module is imported: everything but the bodies of functions."""
+    todo = list(tree.body)
+    while todo:
+        node = todo.pop()
+        yield node
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            todo.extend(ast.iter_child_nodes(node))
+
+
 @functools.cache
 def _imports(path: Path, name: str, stamp: tuple) -> frozenset:
-    """Project modules imported anywhere in ``path`` (module ``name``), relative imports resolved;
+    """Project modules that importing ``path`` (module ``name``) imports, relative imports resolved;
     ``stamp`` (mtime, size) makes an edited file parse again."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
-    for node in ast.walk(ast.parse(path.read_bytes())):
+    for node in _import_time_nodes(ast.parse(path.read_bytes())):
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -201,6 +254,7 @@ def input_record(stage: Stage) -> dict:
         "code_sha256": code_digest(stage.code),
         "config": json.loads(canonical_json(stage.config)),
         "config_sha256": config_hash(stage.config),
+        "libraries": library_versions(),
         "inputs": hashes,
     }
 
@@ -219,7 +273,7 @@ def is_up_to_date(stage: Stage, record: dict | None = None) -> bool:
     if lock is None:
         return False
     record = input_record(stage) if record is None else record
-    if any(lock.get(k) != record[k] for k in ("stage", "code_sha256", "config_sha256", "inputs")):
+    if any(lock.get(k) != record[k] for k in ("stage", "code_sha256", "config_sha256", "libraries", "inputs")):
         return False
     recorded = lock.get("outputs", {})
     if set(recorded) != set(stage.outputs):
@@ -236,10 +290,16 @@ def run_stage(stage: Stage, build: Callable[[], None], force: bool = False) -> b
     if not force and is_up_to_date(stage, record):
         return False
     build()
+    write_lock(stage, record)
+    return True
+
+
+def write_lock(stage: Stage, record: dict) -> None:
+    """Record a finished stage: ``record`` (:func:`input_record`) with its outputs' hashes and the provenance."""
     missing = [str(p) for p in stage.outputs.values() if not p.is_file()]
     if missing:
         raise DataError(f"stage {stage.name!r} finished without writing {', '.join(missing)}; this is a bug in the stage")
-    record["outputs"] = {label: sha256_file(path) for label, path in stage.outputs.items()}
+    record = {**record, "outputs": {label: sha256_file(path) for label, path in stage.outputs.items()},
+              "sdfzoo": provenance()}
     atomic_write_text(stage.lock, json.dumps(record, indent=1, sort_keys=True) + "\n")
-    return True
 

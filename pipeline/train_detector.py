@@ -44,6 +44,7 @@ from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, perimeter
 from zoo.validation import as_device, positive_float, positive_int
 
+from .distributed import World, average_gradients
 from .presets import Presets
 from .stages import code_digest
 from .training import Checkpoint, cosine_factor, data_digest, run_fingerprint, set_learning_rates, train_steps
@@ -269,7 +270,7 @@ def batch_losses(detector: AmortizedDetector, data: TrainingData, rows: torch.Te
 
 
 def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool = True, log=None,
-          init: AmortizedDetector | None = None, device=None) -> tuple[AmortizedDetector, dict]:
+          init: AmortizedDetector | None = None, device=None, world: World = World()) -> tuple[AmortizedDetector, dict]:
     """Train a detector on ``data``; return (detector, history).
 
     ``device`` (e.g. "cuda"): where the detector, the data and the SDF queries live; default the data's.
@@ -279,13 +280,18 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
     written as ``detector.safetensors`` and ``detector.json``; an existing checkpoint of the same
     config and the same training data is resumed. ``init`` (a detector of the same config) fine-tunes instead of starting
     afresh, e.g. after the NeuralSDF it was trained on was refitted.
+
+    Under several processes (``world``), each takes a batch of its own (step ``s`` of rank ``r`` is the
+    one-process run's batch ``s x world + r``: the global batch grows with the processes, the learning
+    rate stays the preset's), the gradients are averaged, and rank 0 alone writes.
     """
     _check_config(config)
     torch.manual_seed(config.seed)
     out = Path(out_dir) if out_dir is not None else None
     # of the data as given, wherever they live
     saver = Checkpoint(out / CHECKPOINT if out is not None else None,
-                       detector_fingerprint(config, data) if out is not None else "", config.checkpoint_every, config.steps)
+                       detector_fingerprint(config, data) if out is not None else "", config.checkpoint_every, config.steps,
+                       writer=world.main)
     if device is not None:
         data = data.to(device)
     detector = AmortizedDetector.from_config(config.detector).to(data.vertices.device)
@@ -304,7 +310,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
     t0 = time.perf_counter() - history["seconds"]
 
     def step_fn(step: int) -> str:
-        rows = batch_rows(len(data), config.batch_size, step, config.seed).to(data.vertices.device)
+        rows = batch_rows(len(data), config.batch_size, step * world.size + world.rank, config.seed).to(data.vertices.device)
         set_learning_rates(optimiser, lr_factor(config, step))
         if sdf_losses:
             _, l_op, l_min = batch_losses(detector, data, rows, config.create_graph)
@@ -315,13 +321,14 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
             loss = loss + config.lambda_curvature * curvature_loss(detector, data, rows)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
+        average_gradients(detector.parameters(), world)
         torch.nn.utils.clip_grad_norm_(detector.parameters(), config.grad_clip)
         if _finite_gradients(detector):  # skip a step rather than poison the weights
             optimiser.step()
         _record(history, step, loss, l_op, l_min)
         if (step + 1) % config.validate_every == 0 or step + 1 == config.steps:
             history["validation"].append({"step": step + 1, **validation_metrics(detector, data, validation_rows)})
-            if log:
+            if log and world.main:
                 log(f"step {step + 1}: {history['validation'][-1]}")
         history["seconds"] = time.perf_counter() - t0
         return f"loss {history['loss'][-1]:.3g}"
@@ -331,8 +338,8 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
                 "optimiser": optimiser.state_dict(), "generator": generator.get_state(),
                 "torch_rng": torch.get_rng_state(), "history": history}
 
-    train_steps(start, config.steps, step_fn, saver, training_state, progress, "train detector")
-    if out is not None:
+    train_steps(start, config.steps, step_fn, saver, training_state, progress and world.main, "train detector")
+    if out is not None and world.main:
         save_detector(out, detector, extra={"train": config.to_dict(), "history": _summary(history)})
     return detector, history
 
@@ -468,18 +475,21 @@ def training_data_from_file(path, model, stems=None) -> TrainingData:
 
 def stage_train_detector(run) -> bool:
     """`zoo fit-category` stage: train the detector on the stage sample-triangles' dataset; sets run.detector."""
-    from .stages import Stage, run_stage
+    from .distributed import run_stage_together
+    from .stages import Stage
 
     config = PRESETS.lookup_or_default(run.preset.name)
     out = run.work_dir / "detector" / run.preset.name
-    stage = Stage("train-detector", {"triangles": run.triangles_file, "fit": run.fit_file}, {"train": config.to_dict()},
-                  {"weights": out / WEIGHTS, "config": out / CONFIG}, code=(__name__,))
+    stage = Stage("train-detector", {"triangles": run.triangles_file, "fit": run.fit_file},
+                  {"train": config.to_dict(), "processes": run.world.size},
+                  {"weights": out / WEIGHTS, "config": out / CONFIG}, code=(__name__, "zoo.model"))
 
     def build():
         data = training_data_from_file(run.triangles_file, run.model, run.stems)
-        train(data, config, out_dir=out, progress=run.progress, log=None if run.progress else run.log, device=run.device)
+        train(data, config, out_dir=out, progress=run.progress, log=None if run.progress else run.log, device=run.device,
+              world=run.world)
 
-    did = run_stage(stage, build)
+    did = run_stage_together(run.world, stage, build)
     run.detector = load_detector(out)
     info = json.loads((out / CONFIG).read_text())
     run.detector_info = {"train_preset": run.preset.name, **info.get("history", {})}

@@ -21,16 +21,17 @@ HDF5 layout (``SCHEMA_VERSION``)::
     reference/min_sdf (K,)    float32
     attrs: schema_version, shapes (JSON list of names), provenance (JSON: config, seeds, versions)
 
-Each shape is written to its own chunk file first (atomically), so an interrupted run resumes
-at the next shape; the chunks are then merged into the output, atomically. The same shapes,
-config and seed give identical arrays.
+Each shape is written to its own chunk file first (``<out>.chunks/<name>.h5``, atomically), so an
+interrupted run resumes at the next shape; the chunks are then merged into the output, atomically.
+A shape's seed comes from its name, so its chunk is the same file whatever the other shapes and
+however many processes share the work; the same shapes, config and seed give identical arrays.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,7 @@ from .presets import Presets
 
 SCHEMA_VERSION = 1
 ARRAYS = ("vertices", "features", "vertex_sdf", "bary", "min_sdf", "shape_index")
+CHUNK_ARRAYS = ARRAYS[:-1]  # a chunk is one shape's: its row in the merged file comes with the merge
 REFERENCE_ARRAYS = ("rows", "bary", "min_sdf")
 
 
@@ -77,9 +79,10 @@ PRESETS = Presets(
 preset = PRESETS.lookup
 
 
-def shape_seed(seed: int, index: int) -> int:
-    """A per-shape seed derived from the run's seed and the shape's position (stable across runs)."""
-    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
+def shape_seed(seed: int, name: str) -> int:
+    """A per-shape seed derived from the run's seed and the shape's name (not its position in a list)."""
+    digest = hashlib.sha256(f"{int(seed)}:{name}".encode()).digest()
+    return int(np.random.SeedSequence([int(seed), int.from_bytes(digest[:8], "little")]).generate_state(1)[0])
 
 
 # --------------------------------------------------------------------------- one shape
@@ -112,7 +115,7 @@ def reference_labels(sdf, triangles: torch.Tensor, config: TriangleConfig) -> di
     return {"rows": np.arange(k, dtype=np.int64), "bary": b.float().cpu().numpy(), "min_sdf": f.float().cpu().numpy()}
 
 
-def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, device=None) -> dict:
+def shape_triangles(shape, name: str, config: TriangleConfig, sampler=None, device=None) -> dict:
     """Sample and label one shape's triangles; -> dict of numpy arrays (see the module's layout).
 
     ``shape`` has ``normalised`` (its SDF in the normalised frame) and ``features(points (N, 3))``.
@@ -126,7 +129,7 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, dev
         from sdfzoo.pipeline.triangle_sampling import sample_constrained_triangles
 
         sampler = partial(sample_constrained_triangles, batch=config.sampler_batch, device=device)
-    tri = torch.as_tensor(sampler(sdf, config.n_per_shape, seed=shape_seed(config.seed, index))).float()
+    tri = torch.as_tensor(sampler(sdf, config.n_per_shape, seed=shape_seed(config.seed, name))).float()
     tri = tri.to(device)  # device None: stays where the sampler put it
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
         raise DataError(f"the triangle sampler returned shape {tuple(tri.shape)}; expected (M, 3, 3)")
@@ -141,7 +144,6 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, dev
         "vertex_sdf": vsdf.reshape(tri.shape[0], 3).cpu().numpy(),
         "bary": labels["bary"],
         "min_sdf": labels["min_sdf"],
-        "shape_index": np.full(tri.shape[0], index, dtype=np.int32),
         "reference": ref,
     }
 
@@ -151,42 +153,61 @@ def shape_triangles(shape, index: int, config: TriangleConfig, sampler=None, dev
 
 def sample_triangle_dataset(shapes, out_path, config: TriangleConfig = TriangleConfig(), sampler=None,
                             progress: bool = True, provenance: dict | None = None, device=None) -> Path:
-    """Write the labelled triangle dataset of ``shapes`` [(name, shape), ...] to ``out_path`` (HDF5).
+    """Write the labelled triangle dataset of ``shapes`` [(name, shape), ...] to ``out_path`` (HDF5), in one process.
 
     ``device`` (e.g. "cuda") is where the SDF queries run; the file is the same wherever they ran, up to
     rounding (see :func:`pipeline.triangle_sampling.sample_constrained_triangles`).
 
     Resumes from per-shape chunk files in ``<out_path>.chunks/`` written by an interrupted run
-    with the same config, shape names and ``provenance`` (which should name the fit the shapes come
-    from); removes them once the merged file is in place.
+    with the same config and ``provenance`` (which should name the fit the shapes come from);
+    removes them once the merged file is in place.
     """
-    h5py = require("h5py")
     shapes = list(shapes)
     if not shapes:
         raise InputError("no shapes given; pass [(name, shape), ...] with at least one fitted shape")
-    out_path = Path(out_path)
-    chunk_dir = out_path.with_name(out_path.name + ".chunks")
-    names = [name for name, _ in shapes]
-    tag = _run_tag(names, config, provenance)
-    chunks = []
     with task_bar(progress, "sample triangles", len(shapes)) as bar:
-        for index, (name, shape) in enumerate(shapes):
-            path = chunk_dir / f"shape_{index:04d}.h5"
-            if not _chunk_is_current(h5py, path, tag):
-                _write_chunk(h5py, path, shape_triangles(shape, index, config, sampler, device), tag)
-            chunks.append(path)
+        for name, shape in shapes:
+            write_shape_chunk(name, shape, out_path, config, provenance, sampler, device)
             bar.advance(description=f"sample triangles {name}")
+    return merge_triangle_chunks(out_path, [name for name, _ in shapes], config, provenance)
+
+
+def chunk_path(out_path, name: str) -> Path:
+    """Where shape ``name``'s labelled triangles wait to be merged into ``out_path``."""
+    out_path = Path(out_path)
+    return out_path.with_name(out_path.name + ".chunks") / f"{name}.h5"
+
+
+def write_shape_chunk(name: str, shape, out_path, config: TriangleConfig, provenance: dict | None = None,
+                      sampler=None, device=None) -> Path:
+    """Sample and label one shape into its chunk file, unless a current chunk is there; -> its path."""
+    h5py = require("h5py")
+    path = chunk_path(out_path, name)
+    tag = _run_tag(name, config, provenance)
+    if not _chunk_is_current(h5py, path, tag):
+        _write_chunk(h5py, path, shape_triangles(shape, name, config, sampler, device), tag)
+    return path
+
+
+def merge_triangle_chunks(out_path, names: list[str], config: TriangleConfig, provenance: dict | None = None,
+                          extra: dict | None = None) -> Path:
+    """Merge the chunks of ``names`` (in that order) into ``out_path``, atomically; then remove them."""
+    h5py = require("h5py")
+    out_path = Path(out_path)
+    chunks = [chunk_path(out_path, name) for name in names]
     meta = {
         "config": config.to_dict(),
-        "shape_seeds": [shape_seed(config.seed, i) for i in range(len(shapes))],
+        "shape_seeds": [shape_seed(config.seed, name) for name in names],
         "fw_iters": config.fw_iters,
         "frame": "normalised",
         "sdfzoo": _version(),
         **(provenance or {}),
+        **(extra or {}),
     }
     _merge_chunks(h5py, chunks, out_path, names, meta)
     for path in chunks:
         path.unlink(missing_ok=True)
+    chunk_dir = chunks[0].parent
     if chunk_dir.is_dir() and not any(chunk_dir.iterdir()):
         chunk_dir.rmdir()
     return out_path
@@ -214,10 +235,10 @@ def read_triangle_dataset(path) -> dict:
     return out
 
 
-def _run_tag(names: list[str], config: TriangleConfig, provenance: dict | None = None) -> str:
-    """What a chunk must match to be reused: the config, the shape list (their order fixes the seeds) and
-    the provenance, which names the fit the shapes come from (a chunk of another fit holds other labels)."""
-    blob = json.dumps({"config": config.to_dict(), "shapes": names, "schema": SCHEMA_VERSION,
+def _run_tag(name: str, config: TriangleConfig, provenance: dict | None = None) -> str:
+    """What a chunk must match to be reused: the config, the shape's name (it fixes the seed) and the
+    provenance, which names the fit the shape comes from (a chunk of another fit holds other labels)."""
+    blob = json.dumps({"config": config.to_dict(), "shape": name, "schema": SCHEMA_VERSION,
                        **({"provenance": provenance} if provenance else {})}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
 
@@ -236,7 +257,7 @@ def _write_chunk(h5py, path: Path, arrays: dict, tag: str) -> None:
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["run_tag"] = tag
-            for k in ARRAYS:
+            for k in CHUNK_ARRAYS:
                 f.create_dataset(k, data=arrays[k])
             g = f.create_group("reference")
             for k in REFERENCE_ARRAYS:
@@ -245,9 +266,11 @@ def _write_chunk(h5py, path: Path, arrays: dict, tag: str) -> None:
 
 def _merge_chunks(h5py, chunks: list[Path], out_path: Path, names: list[str], meta: dict) -> None:
     parts = []
-    for path in chunks:
+    for index, path in enumerate(chunks):
         with h5py.File(path, "r") as f:
-            parts.append(({k: f[k][...] for k in ARRAYS}, {k: f["reference"][k][...] for k in REFERENCE_ARRAYS}))
+            arrays = {k: f[k][...] for k in CHUNK_ARRAYS}
+            arrays["shape_index"] = np.full(len(arrays["vertices"]), index, dtype=np.int32)
+            parts.append((arrays, {k: f["reference"][k][...] for k in REFERENCE_ARRAYS}))
     offsets = np.cumsum([0] + [len(p[0]["vertices"]) for p in parts])
     with atomic_path(out_path) as tmp:
         with h5py.File(tmp, "w") as f:
@@ -290,9 +313,9 @@ def relabel_triangle_dataset(in_path, shapes, out_path, config: TriangleConfig =
     h5py = require("h5py")
     old = read_triangle_dataset(in_path)
     names = [n for n, _ in shapes]
+    out_path = Path(out_path)
     if names != old["shapes"]:
         raise DataError(f"{in_path} holds shapes {old['shapes'][:3]}..., not {names[:3]}...; pass the same shapes in the same order")
-    parts = []
     with task_bar(progress, "relabel triangles", len(shapes)) as bar:
         for index, (name, shape) in enumerate(shapes):
             tri = old["vertices"][old["shape_index"] == index]
@@ -305,46 +328,51 @@ def relabel_triangle_dataset(in_path, shapes, out_path, config: TriangleConfig =
             with torch.no_grad():
                 feat = torch.as_tensor(shape.features(tri.reshape(-1, 3))).float().reshape(tri.shape[0], 3, -1)
                 vsdf = torch.as_tensor(sdf(tri.reshape(-1, 3))).float().reshape(-1, 3)
-            parts.append({
+            _write_chunk(h5py, chunk_path(out_path, name), {
                 "vertices": tri.numpy(), "features": feat.numpy(), "vertex_sdf": vsdf.numpy(),
                 "bary": labels["bary"][keep.numpy()], "min_sdf": labels["min_sdf"][keep.numpy()],
-                "shape_index": np.full(tri.shape[0], index, dtype=np.int32), "reference": reference_labels(sdf, tri, config),
-            })
+                "reference": reference_labels(sdf, tri, config),
+            }, _run_tag(name, config))
             bar.advance(description=f"relabel triangles {name}")
-    chunk_dir = Path(out_path).with_name(Path(out_path).name + ".chunks")
-    tag = _run_tag(names, config)
-    paths = []
-    for index, arrays in enumerate(parts):
-        path = chunk_dir / f"shape_{index:04d}.h5"
-        _write_chunk(h5py, path, arrays, tag)
-        paths.append(path)
-    meta = {**old["provenance"], "relabelled_from": str(in_path), "relabel_config": config.to_dict()}
-    _merge_chunks(h5py, paths, Path(out_path), names, meta)
-    for path in paths:
-        path.unlink(missing_ok=True)
-    chunk_dir.rmdir()
-    return Path(out_path)
+    provenance = {k: v for k, v in old["provenance"].items() if k not in ("config", "shape_seeds", "fw_iters")}
+    return merge_triangle_chunks(out_path, names, old_config(old), provenance,
+                                 {"relabelled_from": str(in_path), "relabel_config": config.to_dict()})
+
+
+def old_config(dataset: dict) -> TriangleConfig:
+    """The config a dataset (:func:`read_triangle_dataset`) was sampled with."""
+    return TriangleConfig.from_dict(dataset["provenance"]["config"])
 
 
 # --------------------------------------------------------------------------- the fit-category stage
 
 
 def stage_sample_triangles(run) -> bool:
-    """`zoo fit-category` stage: the labelled triangles of every fitted train shape (cached by the fit's hash)."""
-    from .stages import Stage, run_stage
+    """`zoo fit-category` stage: the labelled triangles of every fitted train shape (cached by the fit's hash).
+
+    Each rank samples and labels its share of the shapes into their chunk files; rank 0 merges them. A shape
+    whose sampling fails is set aside (its reason kept in the dataset, so a cached rerun lists it again)."""
+    from .distributed import run_stage_together
+    from .stages import Stage
 
     config = PRESETS.lookup_or_default(run.preset.name)
     out = run.work_dir / "triangles" / f"{run.preset.name}.h5"
     stage = Stage("sample-triangles", {"fit": run.fit_file}, {"triangles": config.to_dict(), "stems": run.stems},
-                  {"triangles": out}, code=(__name__,))
+                  {"triangles": out}, code=(__name__, "pipeline.triangle_sampling", "zoo.solvers", "zoo.model"))
+    # the fitted weights' sha256 ties the per-shape chunks a killed run leaves to the fit they were labelled on
+    provenance = {"category": run.category.name, "fit": str(run.fit_file),
+                  "fit_weights_sha256": weights_sha256(run.model.sdf)}
 
     def build():
-        shapes = [(s, run.model.shape(s)) for s in run.stems]
-        # the fitted weights' sha256 ties the per-shape chunks a killed run leaves to the fit they were labelled on
-        sample_triangle_dataset(shapes, out, config, progress=run.progress, device=run.device,
-                                provenance={"category": run.category.name, "fit": str(run.fit_file),
-                                            "fit_weights_sha256": weights_sha256(run.model.sdf)})
+        before = len(run.set_aside)
+        run.each_mesh("sample-triangles", lambda stem: write_shape_chunk(
+            stem, run.model.shape(stem), out, config, provenance, device=run.device))
+        if run.world.main:
+            set_aside = [asdict(s) for s in run.set_aside[before:]]
+            merge_triangle_chunks(out, run.stems, config, provenance, {"set_aside": set_aside})
 
-    did = run_stage(stage, build)
+    did = run_stage_together(run.world, stage, build)
+    if not did:
+        run.restore_set_aside(read_triangle_dataset(out)["provenance"].get("set_aside", []))
     run.triangles_file = out
     return did

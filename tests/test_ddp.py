@@ -1,4 +1,4 @@
-"""Training under torchrun (DistributedDataParallel, gloo on CPU) follows the one-process run."""
+"""Training under torchrun (gloo on CPU): two processes of B shapes a step follow one process of 2B."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ from sdfzoo.pipeline.samples import ShapeSamples, write_samples
 from zoo.meshes import Similarity
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = {"sdf": {"n_codes": 8, "code_dim": 8, "hidden": [16, 16]}, "steps": 12, "shapes_per_step": 4,
+# each process takes its own batch of 2 shapes: the two processes' 4 are the one process's batch of 4
+CONFIG = {"sdf": {"n_codes": 8, "code_dim": 8, "hidden": [16, 16]}, "steps": 12, "shapes_per_step": 2,
           "points_per_shape": 64, "checkpoint_every": 4, "seed": 1}
 
 
@@ -47,7 +48,7 @@ def test_two_processes_agree_with_one(tmp_path):
     two = subprocess.run([*torchrun(), "--standalone", "--nproc_per_node", "2", *common, "--out", str(tmp_path / "two.pt")],
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert two.returncode == 0, two.stderr[-3000:]
-    config = FitConfig.from_dict({**preset("quick").to_dict(), **CONFIG})  # as pipeline.fit_sdf's main builds it
+    config = FitConfig.from_dict({**preset("quick").to_dict(), **CONFIG, "shapes_per_step": 4})
     one = fit_sdf(load_training_data(files), config, progress=False)  # the same run, one process
     a = {"history": one.history, "model": one.model.state_dict()}
     b = torch.load(tmp_path / "two.pt", weights_only=True)  # tensors, dicts, lists: no pickle

@@ -21,7 +21,7 @@ import numpy as np
 
 from .errors import DataError, InputError, require
 
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
 # Signed-distance sample defaults, in the normalised frame (largest extent 1).
 # DeepSDF samples two Gaussian bands around the surface (variances 0.0025 and 0.00025 for a
@@ -42,7 +42,7 @@ DEFAULT_PADDING = 0.1
 
 
 def load_mesh(path: str | os.PathLike):
-    """Load a triangle mesh (.obj, .ply, .stl, .off) as one ``trimesh.Trimesh``.
+    """Load a triangle mesh (.obj, .ply, .stl, .off, .glb, .gltf) as one ``trimesh.Trimesh``.
 
     Scenes are concatenated into one mesh; vertices split only by texture or normal seams are
     merged (so a closed scan reads as closed); degenerate, duplicate (double-sided) and
