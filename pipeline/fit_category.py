@@ -90,7 +90,7 @@ PRESETS = Presets(
     # each shape's 100k samples seen about 6 times: 2000 steps of 8 shapes x 2048 points for the 54 mugs
     # (~30-40 min on the shared 2-core machine), 741 for the 20 bottles
     default=Preset("default", SampleConfig(n_points=100_000), fit_preset("default"),
-                   EvalConfig(n_near=10_000, n_uniform=10_000), epochs=6.07),
+                   EvalConfig(n_near=10_000, n_uniform=10_000), epochs=6.068),
     # small categories of parts with sub-millimetre detail (a bolt's thread, gear teeth), where default's 600
     # steps leave the NeuralSDF off the mesh by more than a part's clearance: samples 2.5x denser and 60% of
     # them in a band of sigma 0.002 (0.1 mm on an M16 bolt), and a decoder that also sees 8 levels of Fourier

@@ -37,10 +37,16 @@ def test_batches_depend_only_on_seed_and_step():
     a = step_batch(data, TINY, 7)
     b = step_batch(data, TINY, 7)
     assert all(torch.equal(x, y) for x, y in zip(a, b))
-    # two processes' shares make up the one-process batch
-    whole = step_batch(data, TINY, 7, 0, 1)
+    # each of two processes takes a batch of its own size: together, a one-process batch twice as large
     r0, r1 = step_batch(data, TINY, 7, 0, 2), step_batch(data, TINY, 7, 1, 2)
-    assert torch.equal(torch.sort(torch.cat([r0[0], r1[0]])).values, torch.sort(whole[0]).values)
+    assert len(r0[0]) == len(r1[0]) == TINY.shapes_per_step
+    four = sphere_data(radii=(0.1, 0.2, 0.3, 0.4))
+    whole = step_batch(four, replace(TINY, shapes_per_step=4), 7)
+    r0, r1 = step_batch(four, TINY, 7, 0, 2), step_batch(four, TINY, 7, 1, 2)
+    for mine, rank in ((r0, 0), (r1, 1)):
+        assert all(torch.equal(x, y[rank::2]) for x, y in zip(mine, whole))
+    # more processes than shapes: each process's own shapes are distinct
+    assert all(len(set(step_batch(data, TINY, s, r, 4)[0].tolist())) == 2 for s in range(5) for r in range(4))
 
 
 def test_training_reduces_the_loss():
@@ -130,8 +136,13 @@ def test_steps_option_replaces_the_presets_training_length_and_is_recorded():
 
     default = PRESETS.lookup("default")
     longer = replace(default, steps=123)
-    assert default.fit_config(54).steps == 2000 and longer.fit_config(54).steps == 123  # scaled by shapes, then replaced
+    assert default.fit_config(54).steps == 2000 and longer.fit_config(54).steps == 123  # from epochs, then replaced
     assert longer.fit_config(4).steps == 123
+    # epochs: each shape's samples seen as often whatever the category's size or the number of processes
+    for shapes, processes in ((54, 1), (20, 1), (5000, 1), (5000, 8)):
+        steps = default.fit_config(shapes, processes).steps
+        assert default.epochs_seen(steps, shapes, processes) == pytest.approx(default.epochs, rel=1e-3)
+    assert default.fit_config(5000, 8).steps * 8 == pytest.approx(default.fit_config(5000).steps, abs=8)
     assert (default.options, longer.options) == ("--preset default", "--preset default --steps 123")
     with pytest.raises(InputError, match="steps"):
         fit_category("mugs", preset="quick", steps=0)

@@ -7,6 +7,7 @@ import json
 import pytest
 
 import sdfzoo.pipeline.stages as stages
+import zoo
 from sdfzoo.pipeline.stages import (
     Stage,
     canonical_json,
@@ -91,20 +92,21 @@ def write_modules(root, modules: dict):
 
 
 def test_editing_a_module_the_stage_imports_reruns_it_and_nothing_else_does(files, tmp_path, monkeypatch):
-    """The lock holds the digest of the stage's module and of the project modules it imports, transitively."""
+    """The lock holds the digest of the stage's module and of the project modules importing it imports, transitively;
+    a module imported only inside a function (which the stage may never call) is not part of it."""
     src, out = files
     root = tmp_path / "project"
     write_modules(root, {"pipeline.__init__": "", "zoo.__init__": "from .geometry import area\n",
                          "zoo.geometry": "def area(): return 1\n", "zoo.unrelated": "X = 1\n",
                          "pipeline.shout": "import numpy\nfrom . import helper\n",
-                         "pipeline.helper": "def f():\n    from zoo import area\n    return area()\n"})
+                         "pipeline.helper": "from zoo import area\n\ndef g():\n    from zoo import unrelated\n"})
     assert set(code_closure(["pipeline.shout"], root)) == {"pipeline", "pipeline.shout", "pipeline.helper", "zoo", "zoo.geometry"}
     monkeypatch.setattr(stages, "ROOT", root)
     calls = []
     stage = make_stage(src, out, code=("pipeline.shout",))
     assert run_stage(stage, upper(stage, calls)) is True
     assert run_stage(stage, upper(stage, calls)) is False  # unchanged: skipped
-    write_modules(root, {"zoo.unrelated": "X = 2\n"})  # not imported by the stage
+    write_modules(root, {"zoo.unrelated": "X = 2\n"})  # imported only when helper.g() runs
     assert run_stage(stage, upper(stage, calls)) is False
     write_modules(root, {"zoo.geometry": "def area(): return 2  # edited\n"})  # imported two steps away
     assert run_stage(stage, upper(stage, calls)) is True
@@ -112,8 +114,31 @@ def test_editing_a_module_the_stage_imports_reruns_it_and_nothing_else_does(file
     assert len(calls) == 2
 
 
+def test_a_new_library_version_reruns_a_stage(files, monkeypatch):
+    src, out = files
+    calls = []
+    stage = make_stage(src, out)
+    assert run_stage(stage, upper(stage, calls)) is True
+    assert json.loads(stage.lock.read_text())["libraries"]["torch"] == stages.library_versions()["torch"]
+    assert run_stage(stage, upper(stage, calls)) is False
+    now = stages.library_versions()
+    monkeypatch.setattr(stages, "library_versions", lambda: {**now, "libigl": "9.9.9"})
+    assert run_stage(stage, upper(stage, calls)) is True
+
+
+def test_the_lock_records_which_sdfzoo_wrote_it(files):
+    src, out = files
+    stage = make_stage(src, out)
+    run_stage(stage, upper(stage, []))
+    written = json.loads(stage.lock.read_text())["sdfzoo"]
+    assert written["version"] == zoo.__version__ and written == stages.provenance()
+
+
 def test_the_project_stages_hash_what_they_import():
     assert {"pipeline.samples", "pipeline.normalise", "pipeline.stages", "zoo.meshes"} <= set(code_closure(["pipeline.samples"]))
+    # the detector, the model and their kin are no part of sampling: editing them reruns no sample
+    for stage in ("pipeline.samples", "pipeline.normalise", "pipeline.fit_sdf"):
+        assert not {"zoo.detector", "zoo.model", "zoo.amortized", "zoo.completion"} & set(code_closure([stage])), stage
     assert {"pipeline.training", "zoo.neural"} <= set(code_closure(["pipeline.fit_sdf"]))
     assert code_digest(["pipeline.samples"]) == code_digest(["pipeline.samples"])
     assert code_digest(["pipeline.samples"]) != code_digest(["pipeline.fit_sdf"])
@@ -203,7 +228,7 @@ def test_the_fit_stage_digest_covers_the_code_it_runs_and_nothing_else(tmp_path)
     edit(fit, "\nimport json\n", "\n# a comment about json\nimport json  # and another\n\n")
     edit(fit, '"""', '"""An edited docstring. ')
     assert code_digest(["pipeline.fit_sdf"], root) == before
-    edit(fit, "\nimport math\n", "\nimport math\nEDITED = 1\n")
+    edit(fit, "\nimport os\n", "\nimport os\nEDITED = 1\n")
     after = code_digest(["pipeline.fit_sdf"], root)
     assert after != before
     edit(root / "zoo" / "neural.py", "\nimport ", "\nEDITED = 1\nimport ")
