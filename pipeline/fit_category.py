@@ -296,7 +296,7 @@ def stage_package(run: FitRun) -> bool:
     metrics = {"train": run.metrics.get("train", {}), "fit_seconds": model.config.get("fit_seconds"),
                **({"detector": run.detector_info} if run.detector_info else {})}
     training_data = {
-        "category_manifest": f"manifests/categories/{run.category.manifest.name}",
+        "category_manifest": manifest_reference(run.category.manifest),
         "split": "train",
         "inputs": {s: run.category.entry(s).sha256 for s in run.stems},
         "preset": run.preset.name,
@@ -331,6 +331,15 @@ def _same_package(out_dir: Path, wanted: dict) -> bool:
         return json.loads((out_dir / "config.json").read_text()) == json.loads(json.dumps(wanted))
     except (ZooError, OSError, json.JSONDecodeError):
         return False
+
+
+def manifest_reference(manifest: Path) -> str:
+    """How a package names its category manifest: a bundled one by its place in the project, a user's by its path."""
+    from .categories import manifests_folder
+
+    if manifest.resolve().parent == manifests_folder().resolve():
+        return f"manifests/categories/{manifest.name}"
+    return str(manifest.resolve())
 
 
 def license_of(run: FitRun) -> str:

@@ -342,6 +342,8 @@ def model_card(name: str, version: str, config: dict, entry: dict, sources: list
         "",
         f"Shapes: {', '.join(config.get('shapes', []))}",
         "",
+        *_set_aside_lines(data.get("set_aside") or []),
+        *_written_by_lines(data.get("sdfzoo") or {}),
         "## License",
         "",
         f"The weights: **{entry['license']}**. Weights fitted to meshes carry the terms of those meshes: ShapeNet- and "
@@ -357,6 +359,22 @@ def model_card(name: str, version: str, config: dict, entry: dict, sources: list
         "",
     ]
     return "\n".join(lines)
+
+
+def _set_aside_lines(set_aside: list[dict]) -> list[str]:
+    """The meshes `zoo fit-category` left out of the training, with the stage and the reason."""
+    if not set_aside:
+        return []
+    return [f"Set aside ({len(set_aside)} meshes that failed a stage; the model was fitted without them):", "",
+            "| mesh | stage | reason |", "|---|---|---|",
+            *[f"| {row['stem']} | {row['stage']} | {row['reason'].replace('|', '/')} |" for row in set_aside], ""]
+
+
+def _written_by_lines(written_by: dict) -> list[str]:
+    if not written_by:
+        return []
+    commit = f", source commit `{written_by['commit']}`" if written_by.get("commit") else ""
+    return [f"Fitted by sdfzoo {written_by.get('version', '?')}{commit}.", ""]
 
 
 # --------------------------------------------------------------------------- packaging
