@@ -257,3 +257,23 @@ if world.main:
     merge_triangle_chunks(out, model.shapes, config)
 leave_world(world)
 """
+
+
+def test_editing_the_detector_reruns_neither_samples_nor_the_fit(tmp_path, monkeypatch):
+    """The stages' code digests cover the modules they run: an edit of zoo/detector.py retrains the detector
+    and leaves the samples and the NeuralSDF cached (on a copy of the sources, as the stages hash them)."""
+    import sdfzoo.pipeline.stages as stages
+    from sdfzoo.pipeline.fit_category import fit_category
+
+    root = tmp_path / "project"
+    for package in ("pipeline", "zoo"):
+        shutil.copytree(stages.ROOT / package, root / package, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(stages, "ROOT", root)
+    options = dict(preset="quick", work_dir=tmp_path / "work", out_dir=tmp_path / "out", progress=False, log=lambda _: None)
+    first = fit_category("mugs", zoo_data(), **options)
+    assert all(first.ran.values())
+    detector = root / "zoo" / "detector.py"
+    detector.write_text(detector.read_text() + "\n\ndef an_edit():\n    return 1\n")
+    again = fit_category("mugs", zoo_data(), **options)
+    assert not again.ran["samples"] and not again.ran["fit-sdf"] and not again.ran["sample-triangles"]
+    assert again.ran["train-detector"]  # it runs the detector's code
