@@ -33,7 +33,7 @@ from zoo.validation import int_at_least
 
 from .distributed import World, join_world, leave_world, run_stage_together
 from .evaluate_sdf import EvalConfig, evaluate_shape, summarise
-from .fit_sdf import FitConfig, fit_sdf, load_training_data, print_log, save_result
+from .fit_sdf import FitConfig, SampleFiles, fit_sdf, print_log, save_result
 from .fit_sdf import preset as fit_preset
 from .per_mesh import SET_ASIDE_FILE, SetAside, for_each_mesh, write_set_aside
 from .presets import Presets
@@ -221,7 +221,7 @@ def stage_fit_sdf(run: FitRun) -> bool:
                   {"fit": out}, code=("pipeline.fit_sdf", stage_fit_sdf))
 
     def build():
-        data = load_training_data(run.sample_files)
+        data = SampleFiles(run.sample_files)
         result = fit_sdf(data, config, checkpoint, device=run.device, progress=run.progress,
                          log=None if run.progress else print_log)
         if run.world.main:

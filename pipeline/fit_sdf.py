@@ -24,12 +24,14 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from zoo.config import DictConfig
 from zoo.errors import DataError, InputError
-from zoo.files import atomic_path
+from zoo.files import atomic_path, sha256_file
 from zoo.neural import NeuralSDF, NeuralSDFConfig
 from zoo.validation import positive_float, positive_int
 
@@ -108,9 +110,53 @@ class TrainingData:
     def fingerprint(self) -> str:
         return data_digest(self.stems, self.points, self.sdf)
 
+    def batch(self, shapes: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Samples ``rows`` (b, P) of shapes ``shapes`` (b,): -> points (b, P, 3), sdf (b, P)."""
+        return self.points[shapes.unsqueeze(1), rows], self.sdf[shapes.unsqueeze(1), rows]
+
+
+class SampleFiles:
+    """Every shape's samples left in their HDF5 files (``pipeline.samples``) and read as a step needs them.
+
+    What :func:`fit_sdf` holds in memory is a batch, not the category: the memory of a fit does not grow
+    with the number of shapes (apart from their codes). A step reads, of each of its shapes, the HDF5
+    chunks that hold its rows; ``fit_sdf`` prepares the next steps' batches in DataLoader workers while
+    it trains on this one. The batches are those :class:`TrainingData` of the same files gives.
+    """
+
+    def __init__(self, sample_files):
+        from .samples import read_sample_header
+
+        self.paths = [Path(p) for p in sample_files]
+        if not self.paths:
+            raise DataError("no sample files to fit; run the samples stage first (zoo fit-category does)")
+        headers = [read_sample_header(p) for p in self.paths]
+        self.stems = [h.stem for h in headers]
+        self.counts = torch.tensor([h.rows for h in headers])
+        self.similarities = [h.similarity for h in headers]
+
+    def fingerprint(self) -> str:
+        return data_digest(self.stems, [sha256_file(p) for p in self.paths])
+
+    def batch(self, shapes: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Samples ``rows`` (b, P) of shapes ``shapes`` (b,): -> points (b, P, 3), sdf (b, P)."""
+        from .samples import read_sample_rows
+
+        parts = [read_sample_rows(self.paths[int(i)], r.numpy()) for i, r in zip(shapes, rows)]
+        points = torch.from_numpy(np.stack([p for p, _ in parts])) if parts else torch.zeros(0, rows.shape[1], 3)
+        sdf = torch.from_numpy(np.stack([d for _, d in parts])) if parts else torch.zeros(0, rows.shape[1])
+        bad = ~(torch.isfinite(points).all(-1).all(-1) & torch.isfinite(sdf).all(-1)
+                & (points.abs().amax((1, 2)) <= MAX_SAMPLE_COORDINATE))
+        if bad.any():
+            stem = self.stems[int(shapes[bad.nonzero()[0, 0]])]
+            raise InputError(f"samples of {stem!r} hold NaN, Inf or points far outside the normalised frame; "
+                             "regenerate them (delete the file, rerun the samples stage)")
+        return points, sdf
+
 
 def load_training_data(sample_files) -> TrainingData:
-    """Read per-shape HDF5 samples (``pipeline.samples``) into one padded tensor set."""
+    """Read per-shape HDF5 samples (``pipeline.samples``) into one padded tensor set (small categories, tests;
+    :class:`SampleFiles` streams them instead)."""
     from .samples import read_samples
 
     shapes = [read_samples(p) for p in sample_files]
@@ -173,7 +219,7 @@ def step_batch(data: TrainingData, config: FitConfig, step: int, rank: int = 0, 
     u = torch.rand(b, config.points_per_shape, generator=g)
     rows = (u * data.counts[shapes].unsqueeze(1)).long()
     idx, r = shapes[rank::world], rows[rank::world]
-    return idx, data.points[idx.unsqueeze(1), r], data.sdf[idx.unsqueeze(1), r]
+    return (idx, *data.batch(idx, r))
 
 
 def _draw_shapes(n_shapes: int, b: int, world: int, g: torch.Generator) -> torch.Tensor:
@@ -226,14 +272,16 @@ class FitResult:
     resumed_from: int
 
 
-def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike | None = None,
+def fit_sdf(data: TrainingData | SampleFiles, config: FitConfig, checkpoint: str | os.PathLike | None = None,
             device: str | torch.device = "cpu", progress: bool = True, log_every: int = 10,
-            log=None, stop_after: int | None = None) -> FitResult:
+            log=None, stop_after: int | None = None, workers: int | None = None) -> FitResult:
     """Train a category NeuralSDF on ``data``; resume from ``checkpoint`` when it holds this run's state.
 
     Returns the trained module (on ``device``) with the loss history. Under torchrun every
     process calls this; rank 0 alone writes checkpoints and shows progress. ``stop_after``
-    ends the run early at that step (as an interruption would), for tests.
+    ends the run early at that step (as an interruption would), for tests. ``workers``: DataLoader
+    processes that read the next steps' batches while this one trains (default: 1 for :class:`SampleFiles`,
+    none for data in memory).
     """
     world = join_world(device)
     rank, device = world.rank, world.device
@@ -252,9 +300,11 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
         if rank == 0:
             print(f"fit NeuralSDF: resuming from the checkpoint at step {start}/{config.steps}", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
+    workers = (1 if isinstance(data, SampleFiles) else 0) if workers is None else workers
+    batches = iter(step_batches(data, config, start, world, workers))
 
     def step(i: int) -> str:
-        loss = train_step(model, optimizer, data, config, i, world)
+        loss = train_step(model, optimizer, data, config, i, world, next(batches))
         if (i + 1) % log_every == 0 or i + 1 == config.steps:
             history.append((i + 1, loss))
             if log is not None and rank == 0:
@@ -268,15 +318,41 @@ def fit_sdf(data: TrainingData, config: FitConfig, checkpoint: str | os.PathLike
     return FitResult(model, history, time.perf_counter() - t0, start)
 
 
-def train_step(model: NeuralSDF, optimizer, data: TrainingData, config: FitConfig, step: int,
-               world: World = World()) -> float:
-    """One Adam step on this process's batch; returns the mean loss over the processes.
+def step_batches(data, config: FitConfig, start: int, world: World, workers: int = 0):
+    """This process's batches of steps ``start``, ``start + 1``, ... (:func:`step_batch`), read ahead by ``workers``
+    DataLoader processes (into pinned memory when training on a GPU); ``workers=0`` reads each when it is due."""
+    batches = _StepBatches(data, config, start, world.rank, world.size)
+    if not workers:
+        return (batches[k] for k in range(len(batches)))
+    from torch.utils.data import DataLoader
+
+    return DataLoader(batches, batch_size=None, shuffle=False, num_workers=workers, prefetch_factor=4,
+                      pin_memory=world.device.type == "cuda")
+
+
+class _StepBatches(torch.utils.data.Dataset):
+    """Item k: (shape_index, points, sdf) of step ``start + k`` for this rank."""
+
+    def __init__(self, data, config: FitConfig, start: int, rank: int, size: int):
+        self.data, self.config, self.start, self.rank, self.size = data, config, start, rank, size
+
+    def __len__(self) -> int:
+        return max(0, self.config.steps - self.start)
+
+    def __getitem__(self, k: int):
+        return step_batch(self.data, self.config, self.start + k, self.rank, self.size)
+
+
+def train_step(model: NeuralSDF, optimizer, data, config: FitConfig, step: int, world: World = World(),
+               batch: tuple | None = None) -> float:
+    """One Adam step on this process's batch (``batch``, else :func:`step_batch` of ``data``); returns the mean
+    loss over the processes.
 
     Across processes the decoder's gradient is averaged whole, and the codes' and positions' only in the
     rows of the shapes some process's batch touched (:func:`pipeline.distributed.average_rows`).
     """
     set_learning_rates(optimizer, lr_factor(config, step))
-    idx, points, target = step_batch(data, config, step, world.rank, world.size)
+    idx, points, target = batch if batch is not None else step_batch(data, config, step, world.rank, world.size)
     idx = idx.to(world.device)
     points, target = points.to(world.device, non_blocking=True), target.to(world.device, non_blocking=True)
     optimizer.zero_grad(set_to_none=False)  # dense zeros: the rows averaged across processes are indexed
@@ -336,7 +412,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.config:
         overrides = json.loads(args.config)
         config = FitConfig.from_dict({**config.to_dict(), **overrides})
-    data = load_training_data(args.samples)
+    data = SampleFiles(args.samples)
     result = fit_sdf(data, config, args.checkpoint, device=args.device, progress=not args.no_progress, log=print_log)
     rank = int(os.environ.get("RANK", "0"))
     if rank == 0:

@@ -118,10 +118,7 @@ def read_samples(path: str | os.PathLike) -> ShapeSamples:
         raise DataError(f"samples file {path} does not exist; run `zoo fit-category` (or prepare_category) to make it")
     try:
         with h5py.File(path, "r") as f:
-            version = int(f.attrs.get("schema_version", -1))
-            if version != SCHEMA_VERSION:
-                raise DataError(f"{path} has samples schema version {version}, this sdfzoo reads {SCHEMA_VERSION}; "
-                                "delete it and rerun the samples stage")
+            _check_schema(path, f)
             points = f["points"][...]
             sdf = f["sdf"][...]
             out = ShapeSamples(
@@ -141,6 +138,56 @@ def read_samples(path: str | os.PathLike) -> ShapeSamples:
         raise DataError(f"{path} holds points {points.shape} {points.dtype} and sdf {sdf.shape}; expected (N, 3) and (N,) "
                         "float32: delete it and rerun the samples stage")
     return out
+
+
+@dataclass(frozen=True)
+class SampleHeader:
+    """What a samples file says about itself without reading its arrays."""
+
+    stem: str
+    rows: int
+    similarity: Similarity
+
+
+def read_sample_header(path: str | os.PathLike) -> SampleHeader:
+    """The stem, row count and similarity of a samples file; DataError as :func:`read_samples`."""
+    h5py = require("h5py")
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            _check_schema(path, f)
+            rows = f["sdf"].shape[0]
+            if f["points"].shape != (rows, 3) or f["points"].dtype != np.float32 or f["sdf"].dtype != np.float32 or not rows:
+                raise DataError(f"{path} holds points {f['points'].shape} and sdf {f['sdf'].shape}; expected (N, 3) and "
+                                "(N,) float32 with N > 0: delete it and rerun the samples stage")
+            return SampleHeader(str(f.attrs["stem"]), int(rows), Similarity.from_json(str(f.attrs["similarity"])))
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise DataError(f"samples file {path} is missing, corrupt or truncated ({type(exc).__name__}: {exc}); "
+                        "delete it and rerun the samples stage") from exc
+
+
+def read_sample_rows(path: str | os.PathLike, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``rows`` (P,) of a samples file, in that order, repeats allowed: -> points (P, 3), sdf (P,) float32.
+
+    Only the HDF5 chunks that hold them are read and decompressed."""
+    h5py = require("h5py")
+    wanted, order = np.unique(np.asarray(rows, dtype=np.int64), return_inverse=True)
+    try:
+        with h5py.File(path, "r") as f:
+            points, sdf = f["points"][wanted], f["sdf"][wanted]
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise DataError(f"cannot read rows of samples file {path} ({type(exc).__name__}: {exc}); "
+                        "delete it and rerun the samples stage") from exc
+    return points[order], sdf[order]
+
+
+def _check_schema(path: Path, f) -> None:
+    version = int(f.attrs.get("schema_version", -1))
+    if version != SCHEMA_VERSION:
+        raise DataError(f"{path} has samples schema version {version}, this sdfzoo reads {SCHEMA_VERSION}; "
+                        "delete it and rerun the samples stage")
 
 
 # --------------------------------------------------------------------------- stages

@@ -265,24 +265,36 @@ def _write_chunk(h5py, path: Path, arrays: dict, tag: str) -> None:
 
 
 def _merge_chunks(h5py, chunks: list[Path], out_path: Path, names: list[str], meta: dict) -> None:
-    parts = []
-    for index, path in enumerate(chunks):
+    """Copy the chunks into one file, one chunk in memory at a time (a category's triangles need not fit in RAM)."""
+    sizes, ref_sizes, shapes = [], [], {}
+    for path in chunks:
         with h5py.File(path, "r") as f:
-            arrays = {k: f[k][...] for k in CHUNK_ARRAYS}
-            arrays["shape_index"] = np.full(len(arrays["vertices"]), index, dtype=np.int32)
-            parts.append((arrays, {k: f["reference"][k][...] for k in REFERENCE_ARRAYS}))
-    offsets = np.cumsum([0] + [len(p[0]["vertices"]) for p in parts])
+            sizes.append(len(f["vertices"]))
+            ref_sizes.append(len(f["reference"]["rows"]))
+            shapes = {k: (f[k].shape[1:], f[k].dtype) for k in CHUNK_ARRAYS}
+            shapes.update({f"reference/{k}": (f["reference"][k].shape[1:], f["reference"][k].dtype) for k in REFERENCE_ARRAYS})
+    shapes["shape_index"] = ((), np.dtype(np.int32))
+    offsets, ref_offsets = np.cumsum([0, *sizes]), np.cumsum([0, *ref_sizes])
     with atomic_path(out_path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["shapes"] = json.dumps(names)
-            f.attrs["provenance"] = json.dumps(meta, sort_keys=True)
+        with h5py.File(tmp, "w") as out:
+            out.attrs["schema_version"] = SCHEMA_VERSION
+            out.attrs["shapes"] = json.dumps(names)
+            out.attrs["provenance"] = json.dumps(meta, sort_keys=True)
             for k in ARRAYS:
-                f.create_dataset(k, data=np.concatenate([p[0][k] for p in parts]), compression="gzip", compression_opts=1)
-            g = f.create_group("reference")
-            g.create_dataset("rows", data=np.concatenate([p[1]["rows"] + o for p, o in zip(parts, offsets[:-1])]))
-            for k in ("bary", "min_sdf"):
-                g.create_dataset(k, data=np.concatenate([p[1][k] for p in parts]))
+                tail, dtype = shapes[k]
+                out.create_dataset(k, shape=(int(offsets[-1]), *tail), dtype=dtype, compression="gzip", compression_opts=1)
+            for k in REFERENCE_ARRAYS:
+                tail, dtype = shapes[f"reference/{k}"]
+                out.create_dataset(f"reference/{k}", shape=(int(ref_offsets[-1]), *tail), dtype=dtype)
+            for index, path in enumerate(chunks):
+                rows, refs = slice(offsets[index], offsets[index + 1]), slice(ref_offsets[index], ref_offsets[index + 1])
+                with h5py.File(path, "r") as f:
+                    for k in CHUNK_ARRAYS:
+                        out[k][rows] = f[k][...]
+                    out["shape_index"][rows] = index
+                    out["reference/rows"][refs] = f["reference"]["rows"][...] + offsets[index]
+                    for k in ("bary", "min_sdf"):
+                        out[f"reference/{k}"][refs] = f["reference"][k][...]
 
 
 def weights_sha256(module: torch.nn.Module) -> str:

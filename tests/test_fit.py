@@ -146,3 +146,27 @@ def test_steps_option_replaces_the_presets_training_length_and_is_recorded():
     assert (default.options, longer.options) == ("--preset default", "--preset default --steps 123")
     with pytest.raises(InputError, match="steps"):
         fit_category("mugs", preset="quick", steps=0)
+
+
+def test_samples_streamed_from_their_files_train_the_same_model(tmp_path):
+    """SampleFiles reads a step's rows from HDF5 (in DataLoader workers or not): the fit is the in-memory fit."""
+    from sdfzoo.pipeline.fit_sdf import SampleFiles, load_training_data
+    from sdfzoo.pipeline.samples import ShapeSamples, write_samples
+    from zoo.meshes import Similarity
+
+    data = sphere_data(n=3000)
+    files = [write_samples(tmp_path / f"{stem}.h5", ShapeSamples(stem, data.points[i, : int(data.counts[i])].numpy(),
+                                                                  data.sdf[i, : int(data.counts[i])].numpy(),
+                                                                  Similarity.identity()))
+             for i, stem in enumerate(data.stems)]
+    config = replace(TINY, steps=12)
+    in_memory = fit_sdf(load_training_data(files), config, progress=False)
+    for workers in (0, 1):
+        streamed = fit_sdf(SampleFiles(files), config, progress=False, workers=workers)
+        assert streamed.history == in_memory.history
+        for (k, v), w in zip(in_memory.model.state_dict().items(), streamed.model.state_dict().values()):
+            assert torch.equal(v, w), (workers, k)
+    streamed = SampleFiles(files)
+    rows = torch.tensor([[5, 2, 5, 2999]])
+    points, sdf = streamed.batch(torch.tensor([1]), rows)
+    assert torch.equal(points[0], data.points[1, rows[0]]) and torch.equal(sdf[0], data.sdf[1, rows[0]])
