@@ -35,6 +35,7 @@ class BenchOptions:
     sim_seconds: float = 0.2  # --sim: simulated seconds per run
     panda: bool = True  # --sim: the Panda scenes too
     completion_limit: int | None = None  # --completion: test meshes per category (default: all)
+    fit_scale_variants: int = 4  # --fit-scale: deformed variants per source mesh (N = 6 x this)
 
 
 def _table(title: str, header: list[str], rows: list[list[str]]):
@@ -170,8 +171,28 @@ def _run_completion(opts: BenchOptions) -> None:
     console.print(f"written: {path} and completion.png beside it")
 
 
+def _run_fit_scale(opts: BenchOptions) -> None:
+    import json
+
+    from rich.console import Console
+
+    from sdfzoo.benches.fit_scale import TABLE_HEADER, format_table, run_fit_scale_benchmark
+    from sdfzoo.pipeline.categories import resolve_data_dir
+
+    path = run_fit_scale_benchmark(opts.out, resolve_data_dir(None), variants=opts.fit_scale_variants)
+    report = json.loads(path.read_text())
+    meshes, machine = report["config"]["meshes"], report["machine"]
+    console = Console(width=max(Console().width, 120))
+    console.print(_table(f"zoo fit-category --preset quick: N = {meshes['N']} and 3N = {meshes['3N']} meshes "
+                         f"({machine['cores']} cores, torch {machine['torch']})", TABLE_HEADER, format_table(report)))
+    seconds = report["per_mesh_seconds"]
+    console.print(f"per-mesh stages: {seconds['N, 1 process']:.1f} s on 1 process, {seconds['N, 2 processes']:.1f} s on 2: "
+                  f"{report['per_mesh_speedup']:.2f}x; written: {path}")
+
+
 _SECTIONS: dict[str, Callable[[BenchOptions], None]] = {"solvers": _run_solvers, "scenes": _run_scenes, "detector": _run_detector,
-                                                        "sim": _run_sim, "completion": _run_completion}
+                                                        "sim": _run_sim, "completion": _run_completion,
+                                                        "fit-scale": _run_fit_scale}
 
 
 @app.command()
@@ -199,13 +220,19 @@ def bench(
                                     "mugs' and bottles' test meshes (needs $ZOO_DATA): fit_observation against the nearest "
                                     "train shape and the mean codes, fit_codes on the whole mesh as the ceiling; JSON and a PNG."),
     completion_limit: int = typer.Option(None, "--completion-limit", min=1, help="With --completion: test meshes per category."),
+    fit_scale: bool = typer.Option(False, "--fit-scale", help="zoo fit-category on 1 and 2 processes and on N and 3N "
+                                   "meshes (deformed real mugs, needs $ZOO_DATA): per-mesh stages' speed-up, every "
+                                   "stage's peak memory; JSON."),
+    fit_scale_variants: int = typer.Option(4, "--fit-scale-variants", min=1, help="With --fit-scale: deformed variants of "
+                                           "each of 6 mugs (N = 6 x this)."),
 ):
     """Measure error against run time and write the results as JSON (solver section by default)."""
     chosen = [name for name, on in {"solvers": solvers, "scenes": scenes, "detector": detector is not None, "sim": sim,
-                                    "completion": completion}.items() if on]
+                                    "completion": completion, "fit-scale": fit_scale}.items() if on]
     chosen = chosen or [DEFAULT_SECTION]
     opts = BenchOptions(out=out, triangles=triangles, seed=seed, threads=threads or None, progress=not no_progress,
                         scenes=scene or None, model=detector, unseen_category=unseen_category, max_shapes=max_shapes,
-                        n_per_shape=n_per_shape, sim_seconds=sim_seconds, panda=panda, completion_limit=completion_limit)
+                        n_per_shape=n_per_shape, sim_seconds=sim_seconds, panda=panda, completion_limit=completion_limit,
+                        fit_scale_variants=fit_scale_variants)
     for name in chosen:
         _SECTIONS[name](opts)

@@ -106,8 +106,12 @@ def push(
     token: str = typer.Option(None, "--token", help="Hugging Face token (default: the one `hf auth login` saved, or HF_TOKEN)."),
     private: bool = typer.Option(None, "--private/--public", help="Visibility when the repository is created."),
 ):
-    """Upload a release to the Hugging Face Hub and tag it with its version."""
+    """Upload a release to the Hugging Face Hub, tag it with its version, and record the commit in its manifest
+    (loading it from the Hub then pins that commit and checks the files against the manifest's hashes)."""
     from sdfzoo.pipeline.package import push_package
 
     done = push_package(spec, repo, token=token, private=private)
-    typer.echo(f"pushed {spec} to {done['repo']} (tag {done['tag']}); load with zoo.load(\"{done['spec']}\")")
+    typer.echo(f"pushed {spec} to {done['repo']} (tag {done['tag']}, commit {done['commit']}); "
+               f"load with zoo.load(\"{done['spec']}\")")
+    typer.echo(f"recorded in {done['manifest']}" if done["manifest"] else
+               "not recorded: the release's manifest belongs to the installed package")

@@ -172,11 +172,14 @@ def launch_local(nproc: int, args: list[str]) -> int:
     """Run ``zoo ARGS`` on ``nproc`` processes of this machine under torchrun's launcher; -> its exit code.
 
     torchrun (``--standalone``: its own rendezvous on localhost) starts the processes, restarts none,
-    and gives each one thread unless ``OMP_NUM_THREADS`` says otherwise.
+    and gives each one thread unless ``OMP_NUM_THREADS`` says otherwise; libigl's exact distances, which
+    thread on their own, get this machine's cores shared out likewise (``IGL_NUM_THREADS``).
     """
     import subprocess
     import sys
 
+    env = {**os.environ}
+    env.setdefault("IGL_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // nproc)))
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", str(nproc),
                "-m", "sdfzoo.cli", *args]
-    return subprocess.run(command, check=False).returncode
+    return subprocess.run(command, env=env, check=False).returncode

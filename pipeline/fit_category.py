@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from zoo.errors import DataError
-from zoo.files import atomic_path
+from zoo.files import atomic_path, atomic_write_text
 from zoo.validation import int_at_least
 
 from .distributed import World, join_world, leave_world, run_stage_together
@@ -174,6 +174,7 @@ class FitRun:
 
 
 StageFn = Callable[[FitRun], bool]  # returns True when it did work, False when it was cached
+RUN_REPORT_FILE = "run-report.json"
 
 
 @dataclass(frozen=True)
@@ -398,6 +399,7 @@ def fit_category(category: str | os.PathLike, data_dir: str | os.PathLike | None
             run_timed(run, name, fn)
         if world.main:
             write_set_aside(run.set_aside_file, run.set_aside)
+            write_run_report(run)
             log(summary_table(run))
     finally:
         leave_world(world)
@@ -431,6 +433,16 @@ def summary_table(run: FitRun) -> str:
         lines.append(f"set aside ({len(run.set_aside)}; listed in {run.set_aside_file}):")
         lines += [f"  {s.stem} at {s.stage}: {s.reason}" for s in run.set_aside]
     return "\n".join(lines)
+
+
+def write_run_report(run: FitRun) -> Path:
+    """WORK/run-report.json: the closing table as data (what `zoo bench --fit-scale` gathers)."""
+    path = run.work_dir / RUN_REPORT_FILE
+    report = {"category": run.category.name, "preset": run.preset.name, "processes": run.world.size,
+              "meshes": len(run.stems), "set_aside": [asdict(s) for s in run.set_aside],
+              "stages": [asdict(r) for r in run.reports], "sdfzoo": provenance()}
+    atomic_write_text(path, json.dumps(report, indent=1) + "\n")
+    return path
 
 
 def reset_peak_memory() -> None:

@@ -553,4 +553,17 @@ def push_package(spec: str, repo_id: str, token: str | None = None, private: boo
     )
     revision = getattr(commit, "oid", None)
     api.create_tag(repo_id, tag=version, tag_message=f"sdfzoo {name} {version}", revision=revision, repo_type="model")
-    return {"repo": repo_id, "tag": version, "commit": revision, "spec": f"hf-hub:{repo_id}@{version}"}
+    recorded = record_push(name, version, {"repo": repo_id, "tag": version, "commit": revision})
+    return {"repo": repo_id, "tag": version, "commit": revision, "spec": f"hf-hub:{repo_id}@{version}",
+            "manifest": str(recorded) if recorded else None}
+
+
+def record_push(name: str, version: str, hub: dict) -> Path | None:
+    """Write where a release was pushed (repo, tag, commit) into its manifest entry, so that loading it from the
+    Hub pins that commit and checks the files against the entry's hashes; -> the manifest, or None for a
+    release of the installed package (whose files are never changed: its users load it by name anyway)."""
+    if inside_installed_package(registry.manifests_dir()):
+        return None
+    manifest = read_models_manifest(name)
+    manifest["versions"][version]["hub"] = hub
+    return write_models_manifest(name, manifest)

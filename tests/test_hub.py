@@ -168,3 +168,61 @@ def test_bundled_mugs_load_from_a_hand_made_hub_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     m = zoo.load(f"hf-hub:acme/mugs@{record['version']}")
     assert (m.name, m.version, Path(m.path)) == ("mugs", record["version"], snapshot)
+
+
+# --------------------------------------------------------------------------- a pushed release is pinned to its commit
+
+MOVED = "fedcba9876543210fedcba9876543210fedcba98"
+
+
+def test_push_records_its_commit_and_the_hub_load_pins_it(released, tmp_path, monkeypatch):
+    """After `zoo push`, the tag moving on the Hub (to other weights) changes nothing: the recorded commit loads,
+    checked against the manifest's hashes; a pinned snapshot whose files differ from them is refused."""
+    from sdfzoo.pipeline.package import push_package
+    from zoo import registry
+
+    done = push_package("mugs@1.9.0", "acme/mugs", api=FakeHfApi())
+    assert done["commit"] == COMMIT and Path(done["manifest"]) == registry.manifest_path("mugs")
+    _, entry = registry.resolve_version("mugs", "1.9.0")
+    assert entry["hub"] == {"repo": "acme/mugs", "tag": "1.9.0", "commit": COMMIT}
+    cache = tmp_path / "hub"
+    pinned = lay_out_hf_cache(cache, "acme/mugs", "1.9.0", released / "pretrained" / "mugs-1.9.0")
+    moved = lay_out_hf_cache_commit(cache, "acme/mugs", released / "pretrained" / "mugs-1.10.0", MOVED)
+    (cache / "models--acme--mugs" / "refs" / "1.9.0").write_text(MOVED)  # the tag now names other weights
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    m = zoo.load("hf-hub:acme/mugs@1.9.0")
+    assert (m.name, m.version, Path(m.path)) == ("mugs", "1.9.0", pinned) and moved != pinned
+    flip_byte(Path(os.path.realpath(pinned / "sdf.safetensors")))
+    with pytest.raises(ChecksumError):
+        zoo.load("hf-hub:acme/mugs@1.9.0")
+
+
+def test_a_hub_model_this_registry_never_pushed_is_checked_by_its_own_checksums(hf_cache):
+    cache, snapshot = hf_cache
+    m = zoo.load("hf-hub:acme/mugs@1.10.0")  # not recorded by a push: loads from the tag, its SHA256SUMS verified
+    assert Path(m.path) == snapshot and m.name is not None
+
+
+def test_a_registered_release_without_its_checksums_hash_is_an_error(released):
+    from sdfzoo.pipeline.package import read_models_manifest, write_models_manifest
+    from zoo.errors import DataError
+
+    manifest = read_models_manifest("bottles")
+    del manifest["versions"]["1.0.0"]["files"]["SHA256SUMS"]
+    write_models_manifest("bottles", manifest)
+    with pytest.raises(DataError, match="cannot be checked"):
+        zoo.load("bottles@1.0.0")
+
+
+def lay_out_hf_cache_commit(cache: Path, repo_id: str, package: Path, commit: str) -> Path:
+    """One more snapshot in an existing hand-made cache (another commit of the same repository)."""
+    repo = cache / ("models--" + repo_id.replace("/", "--"))
+    snapshot = repo / "snapshots" / commit
+    snapshot.mkdir(parents=True)
+    for file in sorted(package.iterdir()):
+        blob = repo / "blobs" / sha256_file(file)
+        if not blob.exists():
+            shutil.copy(file, blob)
+        (snapshot / file.name).symlink_to(os.path.relpath(blob, snapshot))
+    return snapshot

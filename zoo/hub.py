@@ -49,9 +49,11 @@ def zoo_cache_dir() -> Path:
     return (Path(os.path.expandvars(base)).expanduser() if base else Path.home() / ".cache") / "sdfzoo"
 
 
-def snapshot_dir(spec: str) -> Path:
-    """The local folder of ``ORG/NAME@REVISION``: downloaded if needed, from the cache when offline."""
+def snapshot_dir(spec: str, pin: str | None = None) -> Path:
+    """The local folder of ``ORG/NAME@REVISION``: downloaded if needed, from the cache when offline; ``pin``
+    (a commit) replaces the revision: the files of that commit, whatever the tag points at now."""
     repo_id, revision = parse_hub_spec(spec)
+    revision = pin or revision
     hub = require("huggingface_hub", extra="pipeline")
     from huggingface_hub.errors import (
         IncompleteSnapshotError,

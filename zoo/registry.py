@@ -262,9 +262,7 @@ def load(spec: str | os.PathLike, device: str = "cpu", verify: bool = True):
     is checked against its sha256 first: a corrupt file raises :class:`~zoo.errors.ChecksumError`.
     """
     if isinstance(spec, str) and spec.startswith(HUB_PREFIX):
-        from .hub import snapshot_dir
-
-        return load_directory(snapshot_dir(spec[len(HUB_PREFIX):]), device=device, verify=verify)
+        return load_from_hub(spec[len(HUB_PREFIX):], device=device, verify=verify)
     if _is_path_spec(spec):
         return load_directory(spec, device=device, verify=verify)
     name, _, version = str(spec).partition("@")
@@ -284,9 +282,47 @@ def load_registered(name: str, version: str | None = None, device: str = "cpu", 
             "restore it (git checkout / git lfs pull) or re-create it with `zoo package`"
         )
     if verify:
-        listing = entry["files"].get(CHECKSUMS, {})
-        verify_package(path, expected_checksums_sha256=listing.get("sha256"))
+        verify_package(path, expected_checksums_sha256=checksums_sha256(entry, f"{name}@{version}"))
     return _open_model(path, name, version, device)
+
+
+def checksums_sha256(entry: dict, release: str) -> str:
+    """The sha256 of a release's SHA256SUMS as its manifest records it; DataError where it does not (a release
+    whose files cannot be checked against its manifest is not loaded unchecked)."""
+    digest = (entry.get("files", {}).get(CHECKSUMS) or {}).get("sha256")
+    if not isinstance(digest, str) or not re.fullmatch(r"[0-9a-f]{64}", digest):
+        raise DataError(f"{release}: its manifest entry lacks files.{CHECKSUMS}.sha256, so its files cannot be "
+                        "checked; re-create the release with `zoo package`")
+    return digest
+
+
+def hub_release(repo_id: str, revision: str) -> tuple[str, str, dict] | None:
+    """(name, version, entry) of the registered release that `zoo push` sent to ``repo_id`` as tag or commit
+    ``revision``, or None (a model of someone else's: its own SHA256SUMS is all there is to check)."""
+    for name in model_names():
+        for version, entry in read_manifest(name).get("versions", {}).items():
+            hub = entry.get("hub") or {}
+            if hub.get("repo") == repo_id and revision in (hub.get("tag"), hub.get("commit")):
+                return name, version, entry
+    return None
+
+
+def load_from_hub(spec: str, device: str = "cpu", verify: bool = True):
+    """``ORG/NAME@REVISION`` through huggingface_hub's cache. A release this registry pushed is downloaded at the
+    commit `zoo push` recorded (a tag moved on the Hub does not change what loads) and its files are checked
+    against the manifest's hashes; any other is checked against its own SHA256SUMS."""
+    from .hub import parse_hub_spec, snapshot_dir
+
+    as_device(device)
+    repo_id, revision = parse_hub_spec(spec)
+    release = hub_release(repo_id, revision)
+    if release is None:
+        return load_directory(snapshot_dir(spec), device=device, verify=verify)
+    name, version, entry = release
+    folder = snapshot_dir(spec, pin=entry["hub"]["commit"])
+    if verify:
+        verify_package(folder, expected_checksums_sha256=checksums_sha256(entry, f"{name}@{version}"))
+    return _open_model(folder, name, version, device)
 
 
 def load_directory(path: str | os.PathLike, device: str = "cpu", verify: bool = True):
