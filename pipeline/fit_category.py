@@ -414,13 +414,12 @@ def run_timed(run: FitRun, name: str, fn: StageFn) -> None:
     """Run one stage, timing it and measuring this process's peak memory during it."""
     reset_peak_memory()
     before = len(run.set_aside)
-    meshes = len(run.stems)
     t0 = time.perf_counter()
     did = bool(fn(run))
     seconds = time.perf_counter() - t0
     run.ran[name] = did
-    run.reports.append(StageReport(name, meshes or len(run.stems), seconds, peak_memory_mb(),
-                                   len(run.set_aside) - before, did))
+    set_aside = len(run.set_aside) - before
+    run.reports.append(StageReport(name, len(run.stems) + set_aside, seconds, peak_memory_mb(), set_aside, did))
     run.log(f"{name}: {'done' if did else 'up to date, skipped'} ({seconds:.1f} s)")
 
 
