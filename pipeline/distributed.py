@@ -67,6 +67,14 @@ class World:
         dist.all_gather_object(out, obj)
         return out
 
+    def sum(self, tensor: torch.Tensor) -> torch.Tensor:
+        """``tensor`` summed over the ranks, in place (unchanged on one process)."""
+        if self.distributed:
+            import torch.distributed as dist
+
+            dist.all_reduce(tensor)
+        return tensor
+
     def broadcast(self, obj):
         """Rank 0's ``obj`` on every rank."""
         if not self.distributed:

@@ -57,15 +57,17 @@ def evaluation_points(mesh, config: EvalConfig) -> tuple[np.ndarray, np.ndarray,
     return near, uniform, size
 
 
-def evaluate_shape(sdf, mesh, config: EvalConfig | None = None) -> dict:
-    """Compare ``sdf`` (any SDF in ``mesh``'s frame and units) with the mesh's exact SDF; -> metrics dict."""
+def evaluate_shape(sdf, mesh, config: EvalConfig | None = None, device: str | torch.device = "cpu") -> dict:
+    """Compare ``sdf`` (any SDF in ``mesh``'s frame and units) with the mesh's exact SDF; -> metrics dict.
+
+    ``device``: where the SDF is queried (a GPU for a NeuralSDF); the metrics are computed on the CPU."""
     config = config or EvalConfig()
     near, uniform, size = evaluation_points(mesh, config)
     points = np.concatenate([near, uniform])
     exact = signed_distance(mesh, points)
     t0 = time.perf_counter()
     with torch.no_grad():
-        pred = sdf(torch.as_tensor(points, dtype=torch.float64)).double().cpu().numpy()
+        pred = sdf(torch.as_tensor(points, dtype=torch.float64, device=device)).double().cpu().numpy()
     query_seconds = time.perf_counter() - t0
     err = np.abs(pred - exact) / size
     n = len(near)

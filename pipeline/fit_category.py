@@ -272,7 +272,7 @@ def stage_evaluate(run: FitRun) -> bool:
 
         before = len(run.set_aside)
         per_shape = run.each_mesh("evaluate", lambda stem: evaluate_shape(run.model.shape(stem),
-                                                                          load_mesh(run.mesh_paths[stem]), ev))
+                                                                          load_mesh(run.mesh_paths[stem]), ev, run.device))
         metrics = {"train": summarise(per_shape), "per_shape": per_shape,
                    "command": f"zoo fit-category {run.category.name} {run.preset.options}",
                    "evaluation": ev.to_dict(), "set_aside": [asdict(s) for s in run.set_aside[before:]]}

@@ -226,15 +226,17 @@ class TrainingData:
         tensors = {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), torch.Tensor)}
         return replace(self, **{name: t.to(device) for name, t in tensors.items()})
 
-    def with_edge_curvatures(self) -> TrainingData:
-        """These data with each triangle's midpoint curvatures (the L_curv targets), computed once."""
+    def with_edge_curvatures(self, world: World = World()) -> TrainingData:
+        """These data with each triangle's midpoint curvatures (the L_curv targets), computed once; on several
+        processes each computes those of its share of the shapes, and they exchange them."""
         if self.edge_curvature is not None:
             return self
-        kappa = torch.empty(len(self), 3, dtype=self.vertices.dtype, device=self.vertices.device)
-        for k, sdf in enumerate(self.sdfs):
+        kappa = torch.zeros(len(self), 3, dtype=self.vertices.dtype, device=self.vertices.device)
+        for k in world.share(range(len(self.sdfs))):
             rows = (self.shape_index == k).nonzero().squeeze(-1)
             if len(rows):
-                kappa[rows] = midpoint_curvatures(sdf, self.vertices[rows])
+                kappa[rows] = midpoint_curvatures(self.sdfs[k], self.vertices[rows])
+        world.sum(kappa)  # each row is non-zero on the one rank that computed it
         return replace(self, edge_curvature=kappa)
 
     def batch(self, rows: torch.Tensor):
@@ -303,7 +305,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
     generator = torch.Generator().manual_seed(config.seed)  # kept in checkpoints for any future random use
     start, history = _resume(saver, detector, optimiser, generator, history)
     if config.lambda_curvature > 0:
-        data = data.with_edge_curvatures()
+        data = data.with_edge_curvatures(world)
     sdf_losses = config.use_op_loss or config.use_min_loss
     validation_rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(config.seed + 1))[: config.validation_size]
     validation_rows = validation_rows.to(data.vertices.device)

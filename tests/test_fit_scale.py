@@ -156,6 +156,8 @@ def test_two_torchrun_launchers_write_the_same_per_mesh_files(category, runs):
     assert one.keys() == nodes.keys() and [k for k in one if one[k] != nodes[k]] == []
     # two processes are two processes, on one machine or two: the same training, the same labelled triangles
     assert_same_triangles(base / "nproc2" / "work", base / "nodes2" / "work")
+    for weights in ("sdf.safetensors", "detector.safetensors"):
+        assert sha256_file(base / "nproc2" / "out" / weights) == sha256_file(base / "nodes2" / "out" / weights), weights
 
 
 def triangles(work: Path) -> dict[str, np.ndarray]:

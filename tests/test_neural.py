@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -285,3 +286,17 @@ def test_smooth_beta_is_validated_and_round_trips():
     c = dataclasses.replace(SMALL, smooth_beta=100.0)
     assert NeuralSDFConfig.from_dict(c.to_dict()) == c
     assert NeuralSDFConfig.from_dict({k: v for k, v in SMALL.to_dict().items() if k != "smooth_beta"}).smooth_beta == 0.0
+
+
+def test_shapes_of_one_model_share_one_converted_decoder():
+    """A float64 query converts the decoder once per model, not once per shape (thousands of shapes)."""
+    sdf = NeuralSDF(NeuralSDFConfig(n_codes=8, code_dim=8, hidden=(16, 16)), 3, torch.Generator().manual_seed(0))
+    a, b = (NeuralShape(f"s{i}", sdf.decoder, sdf.config, sdf.codes[i], sdf.positions[i]) for i in (0, 1))
+    points = torch.rand(5, 3, dtype=torch.float64) - 0.5
+    a(points), b(points)
+    assert a._cached(torch.float64, torch.device("cpu"))[0] is b._cached(torch.float64, torch.device("cpu"))[0]
+    with torch.no_grad():  # the shared copy answers as a copy of each shape's own would
+        own = copy.deepcopy(sdf.decoder).double()
+        expected = own(interpolate_codes(points.unsqueeze(0), sdf.positions[1:2].double(), sdf.codes[1:2].double(),
+                                         sdf.config.eps).squeeze(0), points)
+    assert torch.allclose(b(points), expected, atol=1e-12)

@@ -22,6 +22,7 @@ the (P, K) weights: no log, no exp, about half the time, the same values to floa
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -392,6 +393,26 @@ def decode(decoder: Decoder, points: torch.Tensor, positions: torch.Tensor, code
 # --------------------------------------------------------------------------- one shape as an SDF
 
 
+# Converted copies of a decoder (float64, another device, the inference form), kept per decoder and shared by
+# every shape of its model: a category of thousands of shapes holds one copy per device and dtype, not one each.
+_DECODER_COPIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def shared_decoder_copy(decoder: nn.Module, key: tuple, make, replace: bool = False):
+    """The copy of ``decoder`` under ``key`` (made by ``make()`` the first time, or again with ``replace``)."""
+    table = _DECODER_COPIES.setdefault(decoder, {})
+    if replace or key not in table:
+        table[key] = make()
+    return table[key]
+
+
+def converted(decoder: nn.Module, dtype: torch.dtype, device) -> nn.Module:
+    """A frozen copy of ``decoder`` in ``dtype`` on ``device``."""
+    import copy
+
+    return copy.deepcopy(decoder).to(device=device, dtype=dtype).requires_grad_(False)
+
+
 class NeuralShape(SDFBase):
     """One fitted shape: an SDF in its source mesh's frame and units.
 
@@ -462,12 +483,10 @@ class NeuralShape(SDFBase):
         """
         key = (dtype, str(device))
         if key not in self._copies:
-            import copy
-
             param = next(self.decoder.parameters())
             same = param.dtype == dtype and param.device == torch.device(device)
-            # a converted copy only where needed: float64 input is evaluated in float64
-            dec = self.decoder if same else copy.deepcopy(self.decoder).to(device=device, dtype=dtype).requires_grad_(False)
+            # a converted copy only where needed (float64 input is evaluated in float64), one per model
+            dec = self.decoder if same else shared_decoder_copy(self.decoder, key, lambda: converted(self.decoder, dtype, device))
             pos = self.positions.to(device=device, dtype=dtype)
             codes = self.codes.to(device=device, dtype=dtype)
             direct = augmented_code_cloud(pos, codes) if direct_weights_are_safe(self.config.eps, pos.shape[0], dtype) else None
@@ -480,9 +499,9 @@ class NeuralShape(SDFBase):
         if not InferenceDecoder.supports(dec):
             return dec
         key = ("inference", dtype, str(device))
-        fast = self._copies.get(key)
-        if fast is None or fast.decoder is not dec or not fast.current:
-            fast = self._copies[key] = InferenceDecoder(dec)
+        fast = shared_decoder_copy(self.decoder, key, lambda: InferenceDecoder(dec))
+        if fast.decoder is not dec or not fast.current:
+            fast = shared_decoder_copy(self.decoder, key, lambda: InferenceDecoder(dec), replace=True)
         return fast
 
     def _interpolate(self, points_n: torch.Tensor) -> torch.Tensor:
