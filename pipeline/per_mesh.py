@@ -14,7 +14,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from zoo.errors import DataError
 from zoo.files import atomic_write_text
 from zoo.progress import task_bar
 
@@ -74,9 +73,3 @@ def write_set_aside(path: Path, set_aside: list[SetAside]) -> Path:
     atomic_write_text(path, json.dumps([asdict(s) for s in set_aside], indent=1) + "\n")
     return path
 
-
-def read_set_aside(path: Path) -> list[SetAside]:
-    try:
-        return [SetAside(**row) for row in json.loads(Path(path).read_text())]
-    except (OSError, ValueError, TypeError) as exc:
-        raise DataError(f"cannot read the set-aside list {path} ({exc}); delete it and rerun") from exc
