@@ -235,6 +235,16 @@ def read_triangle_dataset(path) -> dict:
     return out
 
 
+def read_provenance(path) -> dict:
+    """A triangle dataset's provenance attribute alone (its arrays are not read)."""
+    h5py = require("h5py")
+    try:
+        with h5py.File(path, "r") as f:
+            return json.loads(f.attrs["provenance"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise DataError(f"triangle dataset {path} is missing or corrupt ({exc}); delete it and rerun sample-triangles") from exc
+
+
 def _run_tag(name: str, config: TriangleConfig, provenance: dict | None = None) -> str:
     """What a chunk must match to be reused: the config, the shape's name (it fixes the seed) and the
     provenance, which names the fit the shape comes from (a chunk of another fit holds other labels)."""
@@ -385,6 +395,6 @@ def stage_sample_triangles(run) -> bool:
 
     did = run_stage_together(run.world, stage, build)
     if not did:
-        run.restore_set_aside(read_triangle_dataset(out)["provenance"].get("set_aside", []))
+        run.restore_set_aside(read_provenance(out).get("set_aside", []))
     run.triangles_file = out
     return did
