@@ -32,7 +32,7 @@ from __future__ import annotations
 import functools
 import json
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -40,7 +40,7 @@ import torch
 from zoo.config import DictConfig
 from zoo.detector import AmortizedDetector
 from zoo.errors import DataError, InputError
-from zoo.files import atomic_path, atomic_write_text
+from zoo.files import atomic_path, atomic_write_text, sha256_file
 from zoo.geometry import bary_to_points, perimeter
 from zoo.validation import as_device, positive_float, positive_int
 
@@ -170,10 +170,10 @@ def midpoint_curvatures(sdf, triangles: torch.Tensor, chunk: int = 65536) -> tor
 
 def curvature_loss(detector: AmortizedDetector, data: TrainingData, rows: torch.Tensor) -> torch.Tensor:
     """Mean L_curv over triangles ``rows`` (B,): predicted against midpoint curvature, per perimeter."""
-    tri, feat, _, vsdf = data.batch(rows)
-    per = perimeter(tri).clamp_min(1e-12)[:, None]
-    predicted = detector.edge_curvatures(tri, feat, vsdf) / per
-    target = data.edge_curvature[rows].clamp_min(0) / per  # bending down acts as straight: a vertex wins
+    b = data.batch(rows)
+    per = perimeter(b.vertices).clamp_min(1e-12)[:, None]
+    predicted = detector.edge_curvatures(b.vertices, b.features, b.vertex_sdf) / per
+    target = b.edge_curvature.clamp_min(0) / per  # bending down acts as straight: a vertex wins
     return torch.nn.functional.smooth_l1_loss(predicted, target, beta=0.01)
 
 
@@ -205,6 +205,8 @@ class TrainingData:
     sdfs: list
     vertex_sdf: torch.Tensor | None = None
     edge_curvature: torch.Tensor | None = None  # (N, 3), set by with_edge_curvatures()
+    source: Path | None = None  # the triangle dataset the tensors map (read_triangle_dataset(mmap=True))
+    batch_device: torch.device | None = None  # where batches go (None: where the tensors are)
 
     def __post_init__(self):
         n = self.vertices.shape[0]
@@ -222,9 +224,9 @@ class TrainingData:
         return self.vertices.shape[0]
 
     def to(self, device) -> TrainingData:
-        """These data with every tensor on ``device`` (the SDFs follow their inputs' device)."""
-        tensors = {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), torch.Tensor)}
-        return replace(self, **{name: t.to(device) for name, t in tensors.items()})
+        """These data with their batches on ``device`` (the SDFs follow their inputs' device). The tensors stay
+        where they are: a category's triangles do not go to a GPU whole, each batch goes when it is drawn."""
+        return replace(self, batch_device=torch.device(device))
 
     def with_edge_curvatures(self, world: World = World()) -> TrainingData:
         """These data with each triangle's midpoint curvatures (the L_curv targets), computed once; on several
@@ -232,17 +234,36 @@ class TrainingData:
         if self.edge_curvature is not None:
             return self
         kappa = torch.zeros(len(self), 3, dtype=self.vertices.dtype, device=self.vertices.device)
+        device = self.batch_device or self.vertices.device
         for k in world.share(range(len(self.sdfs))):
             rows = (self.shape_index == k).nonzero().squeeze(-1)
             if len(rows):
-                kappa[rows] = midpoint_curvatures(self.sdfs[k], self.vertices[rows])
+                kappa[rows] = midpoint_curvatures(self.sdfs[k], self.vertices[rows].to(device)).to(kappa.device)
         world.sum(kappa)  # each row is non-zero on the one rank that computed it
         return replace(self, edge_curvature=kappa)
 
-    def batch(self, rows: torch.Tensor):
-        """-> vertices (B, 3, 3), features (B, 3, C), shape_index (B,), vertex_sdf (B, 3) or None."""
-        vsdf = None if self.vertex_sdf is None else self.vertex_sdf[rows]
-        return self.vertices[rows], self.features[rows], self.shape_index[rows], vsdf
+    def batch(self, rows: torch.Tensor) -> TriangleBatch:
+        """Triangles ``rows`` (B,), on ``batch_device``."""
+        device = self.batch_device or self.vertices.device
+        rows = rows.to(self.vertices.device)
+
+        def take(t):
+            return None if t is None else t[rows].to(device, non_blocking=True)
+
+        return TriangleBatch(take(self.vertices), take(self.features), take(self.shape_index).long(), take(self.vertex_sdf),
+                             take(self.edge_curvature))
+
+
+@dataclass
+class TriangleBatch:
+    """Rows of :class:`TrainingData`: vertices (B, 3, 3), features (B, 3, C), shape_index (B,) int64,
+    vertex_sdf (B, 3) or None, edge_curvature (B, 3) or None."""
+
+    vertices: torch.Tensor
+    features: torch.Tensor
+    shape_index: torch.Tensor
+    vertex_sdf: torch.Tensor | None
+    edge_curvature: torch.Tensor | None
 
 
 def batch_losses(detector: AmortizedDetector, data: TrainingData, rows: torch.Tensor, create_graph: bool = True):
@@ -251,8 +272,9 @@ def batch_losses(detector: AmortizedDetector, data: TrainingData, rows: torch.Te
     Triangles of different shapes are scored by their own SDF (a loop over the shapes in the
     batch, never over triangles).
     """
-    tri, feat, shape, vsdf = data.batch(rows)
-    bary = detector(tri, feat, vsdf)
+    b = data.batch(rows)
+    tri, shape = b.vertices, b.shape_index
+    bary = detector(tri, b.features, b.vertex_sdf)
     l_op = torch.empty(len(rows), dtype=tri.dtype, device=tri.device)
     l_min = torch.empty_like(l_op)
     parts_op, parts_min, order = [], [], []
@@ -296,7 +318,8 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
                        writer=world.main)
     if device is not None:
         data = data.to(device)
-    detector = AmortizedDetector.from_config(config.detector).to(data.vertices.device)
+    on = data.batch_device or data.vertices.device  # where the detector trains
+    detector = AmortizedDetector.from_config(config.detector).to(on)
     if init is not None:
         detector.load_state_dict(init.state_dict())
     detector.fit_input_statistics(data.features)
@@ -317,7 +340,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
         if sdf_losses:
             _, l_op, l_min = batch_losses(detector, data, rows, config.create_graph)
         else:  # the SDF at the predicted points is not needed: skip its (second-order) pass
-            l_op = l_min = torch.zeros(len(rows), dtype=data.vertices.dtype, device=data.vertices.device)
+            l_op = l_min = torch.zeros(len(rows), dtype=data.vertices.dtype, device=on)
         loss = total_loss(l_op, l_min, config)
         if config.lambda_curvature > 0:
             loss = loss + config.lambda_curvature * curvature_loss(detector, data, rows)
@@ -349,12 +372,13 @@ def train(data: TrainingData, config: TrainConfig, out_dir=None, progress: bool 
 def validation_metrics(detector: AmortizedDetector, data: TrainingData, rows: torch.Tensor) -> dict:
     """Mean optimality (eq. 12, L_op / perimeter) and mean L_min on ``rows``, no gradients to weights."""
     with torch.no_grad():
-        tri, feat, _, vsdf = data.batch(rows)
-        bary = detector(tri, feat, vsdf)
+        b = data.batch(rows)
+        tri = b.vertices
+        bary = detector(tri, b.features, b.vertex_sdf)
     # reuse the loss on a detached prediction: L_op / perimeter is equation (12)
     l_op = torch.empty(len(rows), device=tri.device)
     l_min = torch.empty(len(rows), device=tri.device)
-    shape = data.shape_index[rows]
+    shape = b.shape_index
     for k in torch.unique(shape).tolist():
         sel = (shape == k).nonzero().squeeze(-1)
         a, b = detector_losses(data.sdfs[k], tri[sel], bary[sel].detach(), create_graph=False)
@@ -412,8 +436,11 @@ def _summary(history: dict) -> dict:
 
 
 def data_fingerprint(data: TrainingData) -> str:
-    """sha256 of the training triangles, features, shape indices and vertex distances: a checkpoint
-    resumes only a run on the same data (the features change with the NeuralSDF they come from)."""
+    """sha256 of the training triangles, features, shape indices and vertex distances (of the file they map,
+    read in blocks): a checkpoint resumes only a run on the same data (the features change with the NeuralSDF
+    they come from)."""
+    if data.source is not None:
+        return data_digest(sha256_file(data.source))
     return data_digest(data.vertices, data.features, data.shape_index, data.vertex_sdf)
 
 
@@ -467,12 +494,12 @@ def training_data_from_file(path, model, stems=None) -> TrainingData:
     """TrainingData from a triangle dataset (pipeline.triangles) and the Model whose shapes it samples."""
     from .triangles import read_triangle_dataset
 
-    d = read_triangle_dataset(path)
+    d = read_triangle_dataset(path, mmap=True)
     names = d["shapes"]
     if stems is not None and list(stems) != names:
         raise DataError(f"the triangle dataset {path} was made for shapes {names}, not {list(stems)}; rerun sample-triangles")
     sdfs = [model.shape(s).normalised for s in names]
-    return TrainingData(d["vertices"], d["features"], d["shape_index"], sdfs, d["vertex_sdf"])
+    return TrainingData(d["vertices"], d["features"], d["shape_index"], sdfs, d["vertex_sdf"], source=Path(path))
 
 
 def stage_train_detector(run) -> bool:

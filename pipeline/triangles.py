@@ -213,11 +213,13 @@ def merge_triangle_chunks(out_path, names: list[str], config: TriangleConfig, pr
     return out_path
 
 
-def read_triangle_dataset(path) -> dict:
+def read_triangle_dataset(path, mmap: bool = False) -> dict:
     """Load a dataset written by :func:`sample_triangle_dataset` as torch tensors.
 
     -> {"vertices", "features", "bary", "min_sdf", "shape_index" (int64), "reference": {...},
-    "shapes": [names], "provenance": dict}.
+    "shapes": [names], "provenance": dict}. With ``mmap``, the per-triangle arrays are views of the file
+    (copy-on-write memory maps, shape_index int32): the operating system reads the pages a training batch
+    touches, and the process holds no copy of the category's triangles.
     """
     h5py = require("h5py")
     path = Path(path)
@@ -227,12 +229,21 @@ def read_triangle_dataset(path) -> dict:
         version = int(f.attrs.get("schema_version", -1))
         if version != SCHEMA_VERSION:
             raise DataError(f"{path} has schema version {version}, this sdfzoo reads {SCHEMA_VERSION}; regenerate it")
-        out = {k: torch.from_numpy(f[k][...]) for k in ARRAYS}
-        out["shape_index"] = out["shape_index"].long()
+        out = {k: torch.from_numpy(_mapped(path, f[k]) if mmap else f[k][...]) for k in ARRAYS}
+        out["shape_index"] = out["shape_index"] if mmap else out["shape_index"].long()
         out["reference"] = {k: torch.from_numpy(f["reference"][k][...]) for k in REFERENCE_ARRAYS}
         out["shapes"] = json.loads(f.attrs["shapes"])
         out["provenance"] = json.loads(f.attrs["provenance"])
     return out
+
+
+def _mapped(path: Path, dataset) -> np.ndarray:
+    """A contiguous HDF5 dataset as a copy-on-write memory map of its bytes in the file (read whole where it is
+    chunked or compressed, as files merged before the layout was contiguous are)."""
+    offset = dataset.id.get_offset()
+    if offset is None or dataset.chunks is not None or dataset.compression is not None or not dataset.size:
+        return dataset[...]
+    return np.memmap(path, dtype=dataset.dtype, mode="c", offset=offset, shape=dataset.shape)
 
 
 def read_provenance(path) -> dict:
@@ -290,9 +301,9 @@ def _merge_chunks(h5py, chunks: list[Path], out_path: Path, names: list[str], me
             out.attrs["schema_version"] = SCHEMA_VERSION
             out.attrs["shapes"] = json.dumps(names)
             out.attrs["provenance"] = json.dumps(meta, sort_keys=True)
-            for k in ARRAYS:
+            for k in ARRAYS:  # contiguous and uncompressed: training memory-maps them (read_triangle_dataset)
                 tail, dtype = shapes[k]
-                out.create_dataset(k, shape=(int(offsets[-1]), *tail), dtype=dtype, compression="gzip", compression_opts=1)
+                out.create_dataset(k, shape=(int(offsets[-1]), *tail), dtype=dtype)
             for k in REFERENCE_ARRAYS:
                 tail, dtype = shapes[f"reference/{k}"]
                 out.create_dataset(f"reference/{k}", shape=(int(ref_offsets[-1]), *tail), dtype=dtype)

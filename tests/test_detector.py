@@ -598,3 +598,17 @@ def test_model_detect_on_zero_triangles_gives_zero_rows():
     for polish in (False, True):
         assert m.detect(shape, torch.zeros(0, 3, 3), polish=polish).shape == (0, 3)
     assert shape.detect(torch.zeros(0, 3, 3, dtype=torch.float64)).dtype == torch.float64
+
+
+def test_input_statistics_in_chunks_match_the_whole_tensors():
+    """fit_input_statistics sums a chunk at a time (features memory-mapped from a file): the same as torch's
+    mean and std over all features at once."""
+    g = torch.Generator().manual_seed(0)
+    features = torch.randn(1000, 3, 5, generator=g) * torch.tensor([1.0, 2.0, 0.1, 5.0, 1e-3]) + 3.0
+    detector = AmortizedDetector.from_config({"feature_dim": 5})
+    detector.fit_input_statistics(features, chunk=97)
+    flat = features.reshape(-1, 5)
+    within = (features - features.mean(dim=1, keepdim=True)).reshape(-1, 5)
+    assert torch.allclose(detector.feature_mean, flat.mean(0), rtol=1e-6, atol=1e-7)
+    assert torch.allclose(detector.feature_std, flat.std(0).clamp_min(1e-6), rtol=1e-5)
+    assert torch.allclose(detector.feature_within_std, within.std(0).clamp_min(1e-6), rtol=1e-5)

@@ -145,3 +145,28 @@ def test_a_device_gives_the_arrays_of_the_cpu(dataset, tmp_path, device):
                 assert np.array_equal(a[k][...], b[k][...]), k
             else:  # another device's rounding
                 assert np.allclose(a[k][...], b[k][...], atol=1e-5), k
+
+
+def test_a_detector_trained_on_the_mapped_file_is_the_one_trained_in_memory(dataset, tmp_path):
+    """training_data_from_file maps the dataset (no copy of the category's triangles in memory); the weights it
+    trains are bit for bit those of the same triangles read whole."""
+    from sdfzoo.pipeline.train_detector import PRESETS, TrainingData, train, training_data_from_file
+
+    class StandInModel:
+        def __init__(self):
+            self.shapes = dict(shapes())
+
+        def shape(self, name):
+            return self.shapes[name]
+
+    model = StandInModel()
+    mapped = training_data_from_file(dataset, model)
+    assert str(dataset) in open("/proc/self/maps").read()  # the file is mapped, not read into the heap
+    whole = read_triangle_dataset(dataset)
+    in_memory = TrainingData(whole["vertices"], whole["features"], whole["shape_index"],
+                             [s.normalised for _, s in shapes()], whole["vertex_sdf"])
+    config = PRESETS["quick"]
+    a, _ = train(in_memory, config, progress=False)
+    b, _ = train(mapped, config, tmp_path / "mapped", progress=False)
+    for (k, v), w in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.equal(v, w), k

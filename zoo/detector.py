@@ -317,14 +317,24 @@ class AmortizedDetector(nn.Module):
         ctx = torch.cat(pools, dim=-1).unsqueeze(1).expand(-1, 3, -1)
         return torch.cat([e, ctx], dim=-1)
 
-    def fit_input_statistics(self, features: torch.Tensor) -> None:
-        """Set the fixed standardisation from training features (N, 3, C): global and within-triangle spread."""
-        f = features.detach().to(self.feature_mean)
-        flat = f.reshape(-1, f.shape[-1])
-        within = f - f.mean(dim=1, keepdim=True)
-        self.feature_mean.copy_(flat.mean(0))
-        self.feature_std.copy_(flat.std(0).clamp_min(1e-6))
-        self.feature_within_std.copy_(within.reshape(-1, f.shape[-1]).std(0).clamp_min(1e-6))
+    def fit_input_statistics(self, features: torch.Tensor, chunk: int = 65536) -> None:
+        """Set the fixed standardisation from training features (N, 3, C): global and within-triangle spread.
+
+        Sums are taken ``chunk`` triangles at a time in float64, so features memory-mapped from a file are
+        read once, a chunk in memory at a time."""
+        n = features.shape[0] * 3
+        total = torch.zeros(features.shape[-1], dtype=torch.float64)
+        squares, within_squares = torch.zeros_like(total), torch.zeros_like(total)
+        for part in features.detach().split(chunk):
+            f = part.to("cpu", torch.float64)
+            total += f.sum((0, 1))
+            squares += f.square().sum((0, 1))
+            within_squares += (f - f.mean(dim=1, keepdim=True)).square().sum((0, 1))  # within-triangle means are 0
+        mean = total / n
+        variance = (squares - n * mean.square()).clamp_min(0) / max(n - 1, 1)  # unbiased, as torch.std
+        self.feature_mean.copy_(mean)
+        self.feature_std.copy_(variance.sqrt().clamp_min(1e-6))
+        self.feature_within_std.copy_((within_squares / max(n - 1, 1)).sqrt().clamp_min(1e-6))
 
     def _standardised(self, z: torch.Tensor) -> torch.Tensor:
         return (z - self.feature_mean) / self.feature_std
