@@ -17,7 +17,7 @@ def fit_category(
                              "else $ZOO_DATA)."),
     preset: str = typer.Option("default", "--preset",
                                help="default: the shipped models' preset (every train shape, each shape's samples seen "
-                                    "about 6 times, ~40 min for 54 mugs on 2 CPU cores); "
+                                    "about 6 times; docs/fit-scale.md gives its time for the 54 mugs); "
                                     "quick: a one-minute pipeline check (4 shapes, a small network) for tests and CI; "
                                     "fine: parts with sub-millimetre detail (threads, gear teeth), Fourier features, "
                                     "~49 epochs, ~20 min a core for 3 bolts."),

@@ -88,7 +88,7 @@ PRESETS = Presets(
     # 100k samples per shape: training visits ~300k points per shape, and exact SDF sampling of
     # 54 meshes at 250k points each took longer than the training budget on the shared machine
     # each shape's 100k samples seen about 6 times: 2000 steps of 8 shapes x 2048 points for the 54 mugs
-    # (~30-40 min on the shared 2-core machine), 741 for the 20 bottles
+    # (docs/fit-scale.md gives the time), 741 for the 20 bottles
     default=Preset("default", SampleConfig(n_points=100_000), fit_preset("default"),
                    EvalConfig(n_near=10_000, n_uniform=10_000), epochs=6.068),
     # small categories of parts with sub-millimetre detail (a bolt's thread, gear teeth), where default's 600

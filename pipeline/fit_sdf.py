@@ -87,7 +87,7 @@ PRESETS = Presets(
                        points_per_shape=512, checkpoint_every=10, lr_decoder=3e-3, lr_codes=1e-2),
     # measured on 8 mugs (see the issue-3 report): 256 codes and a 256x3 decoder with clamped L1
     # beat the paper's 2.9M-parameter decoder, a 128x3 decoder and MSE at equal CPU time;
-    # 2000 steps of 8 shapes x 2048 points is about 30-40 minutes on the shared 2-core machine.
+    # 2000 steps of 8 shapes x 2048 points for the shipped mugs (docs/fit-scale.md gives the time).
     default=FitConfig(sdf=NeuralSDFConfig(n_codes=256, hidden=(256, 256, 256), smooth_beta=SMOOTH_BETA), steps=2000,
                       shapes_per_step=8, points_per_shape=2048, checkpoint_every=50),
 )
