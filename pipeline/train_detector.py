@@ -40,7 +40,7 @@ import torch
 from zoo.config import DictConfig
 from zoo.detector import AmortizedDetector
 from zoo.errors import DataError, InputError
-from zoo.files import atomic_path, atomic_write_text, sha256_file
+from zoo.files import atomic_path, atomic_write_text
 from zoo.geometry import bary_to_points, perimeter
 from zoo.validation import as_device, positive_float, positive_int
 
@@ -205,7 +205,6 @@ class TrainingData:
     sdfs: list
     vertex_sdf: torch.Tensor | None = None
     edge_curvature: torch.Tensor | None = None  # (N, 3), set by with_edge_curvatures()
-    source: Path | None = None  # the triangle dataset the tensors map (read_triangle_dataset(mmap=True))
     batch_device: torch.device | None = None  # where batches go (None: where the tensors are)
 
     def __post_init__(self):
@@ -436,11 +435,8 @@ def _summary(history: dict) -> dict:
 
 
 def data_fingerprint(data: TrainingData) -> str:
-    """sha256 of the training triangles, features, shape indices and vertex distances (of the file they map,
-    read in blocks): a checkpoint resumes only a run on the same data (the features change with the NeuralSDF
-    they come from)."""
-    if data.source is not None:
-        return data_digest(sha256_file(data.source))
+    """sha256 of the training triangles, features, shape indices and vertex distances: a checkpoint
+    resumes only a run on the same data (the features change with the NeuralSDF they come from)."""
     return data_digest(data.vertices, data.features, data.shape_index, data.vertex_sdf)
 
 
@@ -499,7 +495,7 @@ def training_data_from_file(path, model, stems=None) -> TrainingData:
     if stems is not None and list(stems) != names:
         raise DataError(f"the triangle dataset {path} was made for shapes {names}, not {list(stems)}; rerun sample-triangles")
     sdfs = [model.shape(s).normalised for s in names]
-    return TrainingData(d["vertices"], d["features"], d["shape_index"], sdfs, d["vertex_sdf"], source=Path(path))
+    return TrainingData(d["vertices"], d["features"], d["shape_index"], sdfs, d["vertex_sdf"])
 
 
 def stage_train_detector(run) -> bool:

@@ -46,7 +46,7 @@ def data_digest(*parts) -> str:
         if isinstance(part, torch.Tensor):
             t = part.detach().cpu().contiguous()
             h.update(f"{t.dtype}{tuple(t.shape)}".encode())
-            h.update(t.numpy().tobytes())
+            h.update(t.reshape(-1).view(torch.uint8).numpy())  # the buffer itself: a memory-mapped tensor is not copied
         else:
             h.update(json.dumps(part, sort_keys=True).encode())
     return h.hexdigest()
