@@ -579,3 +579,50 @@ def test_a_simulation_on_a_proxy_follows_the_one_without():
         sim.add_body("ball", sdf=ball, mass=0.1, pose=pose(None, (0.0, 0.0, 0.0352)), joint="free")
         sim.add_body("floor", mesh=floor, joint="fixed")
         sim.build()
+
+
+# -- a dropped proxy keeps what it baked ------------------------------------------------------------
+
+DROP_SCRIPT = """
+import gc, os, sys
+import mujoco
+import zoo, zoo.sim
+
+mug = zoo.load("mugs").shape("hoi4d_mug_0001")
+model = mujoco.MjModel.from_xml_string('''<mujoco><option timestep="0.002"/><worldbody>
+<geom name="floor" type="box" size="0.2 0.2 0.01" pos="0 0 -0.01"/>
+<body name="mug" pos="0 0 0.06"><freejoint/><geom type="sphere" size="0.04" contype="0" conaffinity="0" mass="0.3"/></body>
+</worldbody></mujoco>''')
+data = mujoco.MjData(model)
+world = zoo.sim.attach(model, {"mug": mug})
+world.step(data, 150)
+if sys.argv[1] == "drop":
+    del world
+    gc.collect()
+if sys.argv[1] in ("drop", "keep"):
+    os._exit(0)  # no atexit: only what was written before this is on disk
+"""
+
+
+def baked_on_disk(cache) -> int:
+    folders = sorted((cache / "proxies").iterdir())
+    return sum(load_proxy(folder).n_baked for folder in folders)
+
+
+@pytest.mark.slow
+def test_a_simulation_dropped_before_exit_leaves_its_bricks_in_the_cache(tmp_path):
+    """A Simulation dropped mid-script writes its proxies' new bricks: the next process finds all that a run which
+    exits normally (atexit) leaves, and more than a run killed with the simulation still alive."""
+    import os
+    import subprocess
+    import sys
+
+    counts = {}
+    for how in ("exit", "drop", "keep"):
+        cache = tmp_path / how
+        env = {**os.environ, "ZOO_CACHE": str(cache), "OMP_NUM_THREADS": "1"}
+        result = subprocess.run([sys.executable, "-c", DROP_SCRIPT, how], env=env, capture_output=True, text=True,
+                                timeout=600)
+        assert result.returncode == 0, result.stderr[-3000:]
+        counts[how] = baked_on_disk(cache)
+    assert counts["drop"] == counts["exit"] > counts["keep"], counts
