@@ -592,17 +592,10 @@ class ProxySDF:
         self.folder, self.key = Path(folder), key
         _FLUSHED_AT_EXIT.add(self)
 
-    def __del__(self):
-        # a proxy dropped before the process ends (a simulation rebuilt in the same script) keeps what it baked
-        try:
-            self.flush()
-        except Exception as exc:  # noqa: BLE001 - a finaliser reports a failed write, it cannot raise it
-            warnings.warn(f"could not write the proxy's new bricks to {self.folder}: {exc}", stacklevel=1)
-
     def flush(self, force: bool = False) -> bool:
         """Write the proxy as baked so far to its cache folder (atomically, with its ``SHA256SUMS``) if bricks were baked
-        since the last write (or ``force``); returns whether it wrote. Every proxy with a cache folder is flushed when
-        it is dropped and at the process's exit too."""
+        since the last write (or ``force``); returns whether it wrote. Every proxy with a cache folder is flushed at
+        the process's exit too."""
         if self.folder is None or not (self._unsaved or force):
             return False
         save_proxy(self, self.folder, self.key or "")
@@ -843,8 +836,7 @@ def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: 
     shapes are cached (:func:`proxy_key`); others are baked every time. A cached proxy that fails its checksum or
     cannot be read is refused with a warning and baked again. ``rebake``: bake it anew and replace the cached one.
     ``lazy`` (the default): bricks are baked when first read, and what was baked is written back to the cache by
-    :meth:`ProxySDF.flush`, when the proxy is dropped and at the process's exit; the cached proxy goes on baking
-    lazily when loaded again.
+    :meth:`ProxySDF.flush` and at the process's exit; the cached proxy goes on baking lazily when loaded again.
     ``lazy=False``: every brick is baked now (minutes for a NeuralSDF at 0.1 mm, docs/proxy.md)."""
     from .coherence import motion_lipschitz
     from .hub import zoo_cache_dir
