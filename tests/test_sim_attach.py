@@ -299,11 +299,11 @@ GRASP_XML = """<mujoco><option timestep="0.002" cone="elliptic" impratio="10"/>
 </mujoco>"""
 
 
-def _grasp(hooked: bool, shape) -> dict:
+def _grasp(hooked: bool, shape, steps: int = 250, proxy=True) -> dict:
     """The grasp driven by hand-written targets: close over 40-140 ms, lift 3 cm over 200-400 ms."""
     model = mujoco.MjModel.from_xml_string(GRASP_XML)
     data = mujoco.MjData(model)
-    world = zoo.sim.attach(model, {"mug": shape})
+    world = zoo.sim.attach(model, {"mug": shape}, proxy=proxy)
     mug, hand = model.body("mug").id, model.body("hand").id
     trace = []
 
@@ -316,7 +316,6 @@ def _grasp(hooked: bool, shape) -> dict:
         trace.append({"t": data.time, "mug": data.xpos[mug].copy(), "hand": data.xpos[hand].copy(), "touched": touched,
                       "state": np.concatenate([data.qpos, data.qvel])})
 
-    steps = 250
     if hooked:
         with world.hooked():
             for _ in range(steps):
@@ -328,7 +327,8 @@ def _grasp(hooked: bool, shape) -> dict:
             control(data.time)
             world.step(data)
             record()
-    return {"trace": trace, "start": trace[0]["mug"]}
+    return {"trace": trace, "start": trace[0]["mug"], "bake_seconds": world.bake_seconds,
+            "lazy_bricks": world.proxies["mug"].lazy_bricks}
 
 
 @pytest.mark.slow  # 2 x 250 steps of the NeuralSDF mug against a plane and two pads: 30-90 s on 2 shared cores
@@ -339,6 +339,7 @@ def test_a_gripper_of_primitives_lifts_the_neuralsdf_mug_the_same_through_step_a
     world.hooked() give identical runs."""
     shape = zoo.load("mugs").shape("hoi4d_mug_0001")
     stepped, hooked = _grasp(False, shape), _grasp(True, shape)
+    assert hooked["lazy_bricks"] == 0  # the proxy baked ahead at attach: no step bakes
     trace = stepped["trace"]
     resting = [r for r in trace if r["t"] < 0.04]
     assert all("ground" in r["touched"] for r in resting[2:])  # released at its resting height: touching from step 2
@@ -349,6 +350,36 @@ def test_a_gripper_of_primitives_lifts_the_neuralsdf_mug_the_same_through_step_a
     rise_mug, rise_hand = end["mug"][2] - grasped["mug"][2], end["hand"][2] - grasped["hand"][2]
     assert rise_hand > 0.025 and abs(rise_mug - rise_hand) < 2e-3
     np.testing.assert_array_equal(np.stack([r["state"] for r in hooked["trace"]]), np.stack([r["state"] for r in trace]))
+
+
+@pytest.mark.slow  # 3 x 150 steps of the grasp and a proxy's whole bake (25 s on 2 cores): 60-150 s
+def test_the_grasp_is_the_same_to_the_last_bit_whatever_the_proxy_cache_held(tmp_path, monkeypatch):
+    """A scene gives the same trajectory from an empty proxy cache (its bricks baked lazily as the steps reach them,
+    a few at a time), from the cache that run left, and from a cache baked ahead in other batches: a brick's values
+    do not depend on which bricks were baked with it (zoo.proxy's EVAL_BLOCK), as MuJoCo gives the same step for
+    the same model and state."""
+    import gc
+
+    from zoo.proxy import cached_proxy
+
+    monkeypatch.setenv("ZOO_CACHE", str(tmp_path))
+    shape = zoo.load("mugs").shape("hoi4d_mug_0001")
+    steps = 150  # resting on the plane, then the pads close on it (40-140 ms)
+    empty = _grasp(False, shape, steps, proxy="lazy")
+    gc.collect()  # the run's proxy, dropped, writes what it baked
+    left = _grasp(False, shape, steps, proxy="lazy")
+    gc.collect()
+    assert empty["lazy_bricks"] > 100 and left["lazy_bricks"] < empty["lazy_bricks"] / 4  # baked, then mostly read
+    full = cached_proxy(shape, margin=1e-3)
+    assert full.bake_all(progress=False) > 1000 and full.n_pending == 0
+    del full
+    gc.collect()
+    ahead = _grasp(False, shape, steps)  # the default: baked ahead, here found whole in the cache
+    assert ahead["lazy_bricks"] == 0
+    states = [np.stack([r["state"] for r in run["trace"]]) for run in (empty, left, ahead)]
+    assert not np.array_equal(states[0][0], states[0][-1])  # it moved
+    np.testing.assert_array_equal(states[1], states[0])
+    np.testing.assert_array_equal(states[2], states[0])
 
 
 def test_surface_extraction_queries_near_the_surface_only_and_matches_a_dense_grid(monkeypatch):

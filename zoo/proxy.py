@@ -64,6 +64,7 @@ import atexit
 import hashlib
 import json
 import math
+import os
 import time
 import warnings
 import weakref
@@ -84,8 +85,10 @@ BAND_CELLS = 2  # default band: the margin plus this many cells
 ERROR_SAMPLES = 16384  # held-out points the error is measured on
 ERROR_BRICKS = 64  # a lazy proxy's error is measured in this many random bricks, baked at its creation
 ERROR_SAFETY = 2.0  # error_bound = this times the largest error measured
-CHUNK = 1 << 15  # points per SDF call while baking
+EVAL_BLOCK = 1024  # points per SDF call while baking, always (the last call padded): a network's float32 answer at a
+# point can depend on how many points share its call, and a brick's values must not depend on what it was baked with
 BAKE_BATCH = 4096  # bricks baked together by bake_proxy(lazy=False) (bounds its memory; nodes shared within one)
+AHEAD_BATCH = 512  # bricks made ready together by ProxySDF.bake_all (a progress bar that moves)
 IN_BAND, ABOVE, UNKNOWN = 0, 1, -1  # read()'s status, and a cell's in ``status``
 COARSE = 2  # the cells of row 0, standing for every brick that holds no band cell
 NOT_READY = -1  # ``brick_of`` of a lazy proxy's brick whose coarse values or bake are still to come
@@ -161,6 +164,9 @@ class ProxySDF:
 
     def __init__(self, *, lo, spacing, band, lipschitz, n_bricks, brick_of, nodes, status, coarse_value, coarse_grad,
                  bounds, error=None, error_bound=0.0, bake_seconds=0.0, lazy=False, sdf=None):
+        self.folder, self.key = None, None  # first: __del__ flushes, even of a proxy whose arrays were refused
+        self._unsaved = False  # bricks baked since the last write to ``folder``
+        self._complete = False  # every brick ready (:attr:`complete`)
         self.lo = torch.as_tensor(lo, dtype=torch.float64).reshape(3)
         self.spacing, self.band, self.lipschitz = float(spacing), float(band), float(lipschitz)
         self.n_bricks = torch.as_tensor(n_bricks, dtype=torch.int64).reshape(3)
@@ -169,9 +175,7 @@ class ProxySDF:
         self.error_bound = float(error_bound)
         self.bake_seconds = float(bake_seconds)
         self.lazy, self.sdf, self.coarse_to_fine = bool(lazy), sdf, True
-        self.folder, self.key = None, None
         self.lazy_bricks, self.lazy_seconds = 0, 0.0
-        self._unsaved = False  # bricks baked since the last write to ``folder``
         self.hi = self.lo + self.n_bricks.double() * BRICK * self.spacing
         nb = self.n_bricks.numpy()
         self._brick_of_np = _own(brick_of, np.int64)
@@ -249,6 +253,13 @@ class ProxySDF:
         value is not evaluated yet are not counted: the test says they hold none, if the Lipschitz bound holds)."""
         waiting = np.flatnonzero(self._brick_of_np == NOT_READY)
         return int(self._may_hold_band(waiting).sum())
+
+    @property
+    def complete(self) -> bool:
+        """Whether every brick is ready (no read will bake); once True, True for good."""
+        if not self._complete:
+            self._complete = not (self._brick_of_np == NOT_READY).any()
+        return self._complete
 
     @property
     def memory_bytes(self) -> int:
@@ -383,10 +394,32 @@ class ProxySDF:
         flat = (cell[inside] >> 3) @ self._strides_np
         return self._make_ready(np.unique(flat[self._brick_of_np[flat] == NOT_READY]), coarse_to_fine)
 
-    def bake_all(self) -> int:
-        """Make every brick ready (a lazy proxy then is an eagerly baked one); returns the bricks baked."""
+    def bake_all(self, progress: bool | None = None, threads: int | None = None) -> int:
+        """Make every brick ready now: evaluate every coarse value still missing and bake every brick that may hold
+        band cells, so that no read bakes later (a lazy proxy then answers as an eagerly baked one, and a simulation's
+        first steps cost what its later ones do); returns the bricks baked. The bricks' values are those a lazy read
+        would have baked (:meth:`_evaluate_keys`).
+
+        Args:
+            progress: show a bar of the bricks made ready (default: :func:`zoo.progress.shown`).
+            threads: torch threads for the SDF's evaluation (default: every core this process may use).
+        """
+        from .progress import progress_bar, wanted
+
         waiting = np.flatnonzero(self._brick_of_np == NOT_READY)
-        return sum(self._make_ready(batch) for batch in np.array_split(waiting, -(-waiting.size // BAKE_BATCH) or 1))
+        batches = np.array_split(waiting, -(-waiting.size // AHEAD_BATCH) or 1)
+        baked, before = 0, torch.get_num_threads()
+        torch.set_num_threads(available_cores() if threads is None else max(1, int(threads)))
+        try:
+            with progress_bar(wanted(progress) and waiting.size > 0) as bar:
+                task = bar.add_task(f"baking the proxy of {getattr(self.sdf, 'name', 'an SDF')} ahead (bricks)",
+                                    total=waiting.size)
+                for batch in batches:
+                    baked += self._make_ready(batch)
+                    bar.advance(task, batch.size)
+        finally:
+            torch.set_num_threads(before)
+        return baked
 
     def _rows_made_ready(self, brick_flat: np.ndarray, row: np.ndarray, inside: np.ndarray | None) -> np.ndarray:
         """The rows (N,) of the bricks ``brick_flat`` (N,) after making ready those not yet (``row`` (N,) < 0) that hold
@@ -527,18 +560,23 @@ class ProxySDF:
         return self._evaluate_keys(keys, advance)[inverse]
 
     def _evaluate_keys(self, keys: np.ndarray, advance=None) -> np.ndarray:
-        """f (M,) float64 at the points of flat half-cell keys ``keys`` (M,): float32 points, ``CHUNK`` a call, under
-        ``torch.no_grad()``. Every bake asks its points this way, so that a lazy and an eager bake ask the same."""
+        """f (M,) float64 at the points of flat half-cell keys ``keys`` (M,): float32 points, ``EVAL_BLOCK`` a call
+        (the last call padded with copies of its last point), under ``torch.no_grad()``. Every bake asks its points
+        this way, so that a point's value is the same whichever points were baked with it (lazy or eager, in any
+        order): a proxy, and a simulation on it, do not depend on what the cache held."""
         dy, dz = self._half_dims[1], self._half_dims[2]
         half = np.stack([keys // (dy * dz), (keys // dz) % dy, keys % dz], axis=-1)
         points = torch.from_numpy(self._lo_np + (half / 2) * self.spacing).float()
-        out = np.empty(keys.size, dtype=np.float64)
+        if keys.size % EVAL_BLOCK:
+            points = torch.cat([points, points[-1:].expand(EVAL_BLOCK - keys.size % EVAL_BLOCK, 3)])
+        out = np.empty(points.shape[0], dtype=np.float64)
         with torch.no_grad():
-            for start in range(0, keys.size, CHUNK):  # a loop over chunks, not points
-                chunk = points[start:start + CHUNK]
-                out[start:start + CHUNK] = torch.as_tensor(self.sdf(chunk)).detach().cpu().reshape(-1).double().numpy()
+            for start in range(0, points.shape[0], EVAL_BLOCK):  # a loop over blocks, not points
+                block = points[start:start + EVAL_BLOCK]
+                out[start:start + EVAL_BLOCK] = torch.as_tensor(self.sdf(block)).detach().cpu().reshape(-1).double().numpy()
                 if advance is not None:
-                    advance(chunk.shape[0])
+                    advance(min(EVAL_BLOCK, keys.size - start))
+        out = out[:keys.size]
         if not np.isfinite(out).all():
             raise InputError("the SDF returned NaN or Inf inside its own bounds; check its evaluation")
         return out
@@ -594,13 +632,21 @@ class ProxySDF:
 
     def flush(self, force: bool = False) -> bool:
         """Write the proxy as baked so far to its cache folder (atomically, with its ``SHA256SUMS``) if bricks were baked
-        since the last write (or ``force``); returns whether it wrote. Every proxy with a cache folder is flushed at
-        the process's exit too."""
+        since the last write (or ``force``); returns whether it wrote. Every proxy with a cache folder is flushed when
+        it is dropped and at the process's exit too."""
         if self.folder is None or not (self._unsaved or force):
             return False
         save_proxy(self, self.folder, self.key or "")
         self._unsaved = False
         return True
+
+    def __del__(self):
+        """A proxy dropped before the process exits (a second ``Simulation`` in one script) writes what it baked, as
+        the exit would: a baked brick is never lost."""
+        try:
+            self.flush()
+        except Exception as exc:  # noqa: BLE001 - raised in __del__ it would be printed and lost; say it instead
+            warnings.warn(f"could not write the proxy's new bricks to {self.folder}: {exc}", stacklevel=1)
 
     def state(self) -> tuple[dict, dict]:
         """(tensors, metadata strings) that :meth:`from_state` reads back: the rows baked so far."""
@@ -627,6 +673,11 @@ class ProxySDF:
                        bake_seconds=float(meta.get("bake_seconds", 0.0)), lazy=bool(settings.get("lazy", False)), sdf=sdf)
         except (KeyError, ValueError, TypeError) as exc:
             raise DataError(f"a proxy file lacks or garbles {exc}; delete it (it is rebuilt on the next use)") from exc
+
+
+def available_cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _own(array, dtype) -> np.ndarray:

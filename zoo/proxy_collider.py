@@ -277,7 +277,13 @@ class ProxyCollider:
             self._scratch = _KernelScratch(len(self._v), len(self._f))
         k, held = self._scratch, self._motion
         lip = self.proxy.lipschitz
+        # a pass that met bricks not ready is made again from the same held bounds: the keys it wrote are dropped,
+        # so that the answer is the one a proxy with every brick ready gives (not one that depends on the cache)
+        kept_keys = None if self.proxy.complete else (held.cluster_key.copy(), held.face_key.copy())
+        retry = False
         while True:
+            if retry:
+                held.cluster_key[:], held.face_key[:] = kept_keys
             k.stamp += 1
             k.counts[:] = 0
             kernel.search_faces(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
@@ -292,6 +298,7 @@ class ProxyCollider:
                 break
             missing = k.missing[:min(missed, k.missing.size)]  # then the reads there answer
             self.proxy.make_ready(missing[missing >= 0], coarse=-1 - missing[missing < 0])
+            retry = True
         c = k.counts
         stats.faces_near, stats.faces_skipped = int(c[kernel.FACES_NEAR]), int(c[kernel.FACES_SKIPPED])
         stats.candidates, stats.warm, stats.cold = int(c[kernel.CANDIDATES]), int(c[kernel.WARM]), int(c[kernel.COLD])

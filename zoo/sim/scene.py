@@ -18,7 +18,8 @@ integrator = "implicitfast"     # or "euler", "implicit", "rk4" (default implici
 cone = "pyramidal"              # MuJoCo's friction cone, or "elliptic"; with impratio = 10 for a grasp
 impratio = 1.0
 coherence = true                # carry bounds and answers from step to step (zoo.CoherentCollider)
-proxy = true                    # cull and search on a lazily baked narrow-band proxy of each model shape (zoo.proxy)
+proxy = true                    # cull and search on a narrow-band proxy of each model shape (zoo.proxy), baked ahead
+                                # ("lazy": as steps need it; false: none)
 camera = "side"                 # the video's camera: one of the MJCF's, or { lookat = [x, y, z], distance = 0.3,
                                 # azimuth = 135, elevation = -25 }; default: aimed at the SDF bodies
 # qpos = { joint = 0.5 }        # initial positions of the MJCF's hinge and slide joints (default: the MJCF's qpos0)

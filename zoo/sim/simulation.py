@@ -82,8 +82,9 @@ class Simulation:
         refine: split mesh triangles larger than a quarter of the SDF, and remove the vertices a mesh's flat parts
             do not need, once, at build (``zoo.sim.flat_regions``; False: the mesh as given).
         proxy: with ``coherence`` (the default), the model shapes' mesh pairs cull and search on a narrow-band proxy,
-            baked lazily where the meshes come and cached, and the shape answers only the contacts kept
-            (:func:`zoo.sim.attach`'s ``proxy``; a dict names the bodies and may give their proxies). False queries the
+            baked ahead at build where the cache lacks it ("lazy": when a step first needs it), and the shape answers
+            only the contacts kept (:func:`zoo.sim.attach`'s ``proxy``; a dict names the bodies and may give their
+            proxies). False queries the
             shape itself for everything; ``method="amortized", coherence=False`` is the full from-scratch reference.
         mjcf: an MJCF file (path) to start from (a robot, a gripper, a table): its bodies, joints, actuators, mocap
             and options; :meth:`add_body` adds to it, and an SDF given for one of its bodies is attached to it.
@@ -107,7 +108,7 @@ class Simulation:
     def __init__(self, dt: float | None = None, gravity=None, method: str = "amortized", margin: float = 1e-3,
                  friction: float | None = None, solref=None, solimp=None,
                  integrator: str | None = None, cone: str | None = None, impratio: float | None = None,
-                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool | dict = True):
+                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool | str | dict = True):
         if dt is not None and not (dt > 0 and math.isfinite(dt)):
             raise InputError(f"dt must be positive, got {dt}")
         if integrator is not None and integrator.lower() not in INTEGRATORS:

@@ -215,10 +215,24 @@ class StepStats:
     dropped: int = 0
 
 
+PROXY_CHOICES = ("ahead", "lazy")  # a proxy's bricks baked at attach, or when a read first needs them
+
+
+def proxy_choice(value, name: str = "proxy") -> str | bool:
+    """``attach``'s ``proxy`` as "ahead", "lazy" or False (True is "ahead")."""
+    if value is True:
+        return "ahead"
+    if value is False or value is None:
+        return False
+    if value in PROXY_CHOICES:
+        return value
+    raise InputError(f"{name} must be True, False or one of {PROXY_CHOICES}, got {value!r}")
+
+
 def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
            reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
            surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
-           proxy: bool | dict = True) -> World:
+           proxy: bool | str | dict = True) -> World:
     """sdfzoo's contacts for the SDF bodies of a user's ``mujoco.MjModel`` (see the module docstring).
 
     Args:
@@ -239,10 +253,14 @@ def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e
             collide with all the same (a flat mesh MuJoCo cannot take as a collision mesh).
         tolerance: m; how far a tessellated primitive's triangles may lie inside its true surface.
         proxy: with ``coherence`` (default True), each model shape's mesh pairs cull and search on its narrow-band
-            proxy (:func:`zoo.proxy.cached_proxy` at ``margin``: baked lazily where the meshes come, cached, and what was
-            baked written back at exit), and the shape answers only the contacts kept (:mod:`zoo.proxy_collider`);
-            other SDFs, and planes and spheres, are unchanged. False: every query is the shape's.
-            A dict {SDF body name: a ``zoo.proxy.ProxySDF``, or True} gives those bodies theirs (any SDF), and no other.
+            proxy (:func:`zoo.proxy.cached_proxy` at ``margin``, cached on disk), and the shape answers only the
+            contacts kept (:mod:`zoo.proxy_collider`); other SDFs, and planes and spheres, are unchanged.
+            True or "ahead": every brick near the shape's surface is baked here, at attach, on every core with a
+            progress bar, unless the cache has it (``zoo bake`` prepares the cache); so no step bakes.
+            "lazy": bricks are baked when a step first reads them (a quick start, uneven first steps). Either
+            way the contacts are the same, and what was baked is written back to the cache. False: every query
+            is the shape's. A dict {SDF body name: a ``zoo.proxy.ProxySDF``, True, "ahead" or "lazy"} gives
+            those bodies theirs (any SDF), and no other.
     """
     return World(model, bodies, method=method, margin=margin, coherence=coherence, reduce=reduce, refine=refine,
                  contype=contype, conaffinity=conaffinity, surfaces=surfaces, include_geoms=include_geoms,
@@ -259,12 +277,14 @@ class World:
         contacts: ``zoo.Contacts`` that went into MuJoCo's solver at the last detection, world frame.
         contact_geoms: (K, 2) int the geoms of each of those contacts (the SDF body's, the other's).
         stats: :class:`StepStats` of the last detection.
+        proxies: {SDF body name: its ``zoo.proxy.ProxySDF``, or None}.
+        bake_seconds: the time attach spent baking proxies ahead (0 where the cache held them).
     """
 
     def __init__(self, model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
                  reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
                  surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
-                 proxy: bool | dict = True):
+                 proxy: bool | str | dict = True):
         import mujoco
 
         if not isinstance(model, mujoco.MjModel):
@@ -275,11 +295,15 @@ class World:
         self.method = method
         self.margin = non_negative_float(margin, "margin")
         self.coherence, self.reduce, self.refine = bool(coherence), bool(reduce), bool(refine)
-        self.proxy = dict(proxy) if isinstance(proxy, dict) else bool(proxy)
+        self.proxy = dict(proxy) if isinstance(proxy, dict) else proxy_choice(proxy, "proxy")
+        if isinstance(self.proxy, dict):
+            self.proxy = {name: given if hasattr(given, "read") else proxy_choice(given, f"proxy[{name!r}]")
+                          for name, given in self.proxy.items()}
         if isinstance(self.proxy, dict) and set(self.proxy) - set(bodies):
             raise InputError(f"proxy names {sorted(set(self.proxy) - set(bodies))}, which are not SDF bodies; SDF bodies: "
                              f"{sorted(bodies)}")
         self.proxies: dict[str, object] = {}  # SDF body name -> its zoo.proxy.ProxySDF, where one is used
+        self.bake_seconds = 0.0  # spent at attach baking the proxies ahead (proxy="ahead")
         self.tolerance = float(tolerance)
         include = {self._geom_id(name) for name in include_geoms}
         self.bodies = {name: self._sdf_body(name, sdf, (int(contype), int(conaffinity))) for name, sdf in bodies.items()}
@@ -387,12 +411,16 @@ class World:
         if sdf_body.name not in self.proxies:
             from ..proxy import cached_proxy, proxy_key
 
-            if given is not True:  # the caller's own proxy
-                self.proxies[sdf_body.name] = given
-            elif isinstance(self.proxy, dict) or proxy_key(sdf_body.sdf, {}) is not None:
-                self.proxies[sdf_body.name] = cached_proxy(sdf_body.sdf, margin=self.margin)
-            else:
-                self.proxies[sdf_body.name] = None
+            if isinstance(given, str) and (isinstance(self.proxy, dict) or proxy_key(sdf_body.sdf, {}) is not None):
+                proxy = cached_proxy(sdf_body.sdf, margin=self.margin)
+                if given == "ahead":
+                    started = time.perf_counter()
+                    proxy.bake_all()
+                    proxy.flush()
+                    self.bake_seconds += time.perf_counter() - started
+                self.proxies[sdf_body.name] = proxy
+            else:  # the caller's own proxy, or None: an SDF that is not a model's shape
+                self.proxies[sdf_body.name] = None if isinstance(given, str) else given
         return self.proxies[sdf_body.name]
 
     def _method_for(self, sdf) -> str:
