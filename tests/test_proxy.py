@@ -579,3 +579,59 @@ def test_a_simulation_on_a_proxy_follows_the_one_without():
         sim.add_body("ball", sdf=ball, mass=0.1, pose=pose(None, (0.0, 0.0, 0.0352)), joint="free")
         sim.add_body("floor", mesh=floor, joint="fixed")
         sim.build()
+
+
+# a simulation of the mug dropped 6 mm onto a fixed ball's mesh (a mesh pair on the proxy), baked lazily, then
+# ended three ways: a normal exit, the Simulation dropped before os._exit (no atexit), os._exit with it alive
+DROPPED_SIMULATION = """
+import gc, os, sys
+import numpy as np, torch, trimesh
+import zoo, zoo.sim
+
+
+def at(z):
+    pose = np.eye(4)
+    pose[2, 3] = z
+    return pose
+
+
+torch.set_num_threads(1)
+sim = zoo.sim.Simulation(proxy="lazy")
+sim.add_body("ball", mesh=trimesh.creation.icosphere(subdivisions=3, radius=0.03), joint="fixed", pose=at(-0.03))
+sim.add_body("mug", sdf=zoo.load("mugs").shape("hoi4d_mug_0001"), mass=0.3, pose=at({height}))
+sim.step(30)
+print(sim.world.proxies["mug"].n_baked, flush=True)
+if sys.argv[1] == "exit":
+    sys.exit(0)
+if sys.argv[1] == "drop":
+    del sim
+    gc.collect()
+os._exit(0)
+"""
+
+
+@pytest.mark.slow  # three processes of 30 steps each: 20-40 s on 2 shared cores
+def test_a_proxy_baked_in_a_dropped_simulation_is_found_whole_in_the_cache_by_the_next_process(mug, tmp_path):
+    """A baked brick is never lost: a Simulation dropped before its process ends (os._exit: no atexit) leaves in the
+    cache every brick it baked, as a normal exit does; one never dropped (os._exit with it alive) leaves only what its
+    creation wrote, which shows what the drop adds."""
+    import os
+    import subprocess
+    import sys
+
+    script = DROPPED_SIMULATION.replace("{height}", "0.05")  # its base (not its bounds' bottom) 6 mm above the ball
+    on_disk, baked = {}, {}
+    for mode in ("exit", "drop", "alive"):
+        cache = tmp_path / mode
+        run = subprocess.run([sys.executable, "-c", script, mode], env={**os.environ, "ZOO_CACHE": str(cache)},
+                             capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr[-2000:]
+        baked[mode] = int(run.stdout.split()[-1])
+        (folder,) = (cache / "proxies").iterdir()
+        on_disk[mode] = load_proxy(folder)
+    assert baked["exit"] == baked["drop"] == baked["alive"] > ERROR_BRICKS  # the steps baked bricks
+    assert on_disk["exit"].n_baked == on_disk["drop"].n_baked == baked["drop"]
+    assert on_disk["alive"].n_baked == ERROR_BRICKS  # only the creation's write: os._exit skips the exit's
+    for name in ("nodes", "status", "brick_of", "coarse_value", "coarse_grad"):  # NaN: a coarse value not evaluated
+        assert np.array_equal(getattr(on_disk["drop"], name).numpy(), getattr(on_disk["exit"], name).numpy(),
+                              equal_nan=name.startswith("coarse")), name
