@@ -86,3 +86,36 @@ def simulate(
         console.print("[red]the state became non-finite (NaN/Inf)[/red]")
     for path in paths.values():
         console.print(f"wrote {path}")
+
+
+@app.command()
+def bake(
+    spec: str = typer.Argument(..., help="MODEL[@VERSION][:SHAPE]: every shape of the model, or the one named."),
+    margin: float = typer.Option(1e-3, "--margin", help="m, the contact margin of the simulations to come (a scene's "
+                                 "`margin`: 0.001 for the mugs and bottles scenes, 0.0001 for bolt-nut and gear-gear)."),
+    threads: int = typer.Option(None, "--threads", help="torch threads (default: every core)."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+):
+    """Bake the proxies of a model's shapes into the cache ahead of a simulation (what attach would bake on a first run),
+    so that a simulation's first steps cost what its later ones do."""
+    from rich.console import Console
+    from rich.table import Table
+
+    import zoo
+    from zoo.errors import InputError
+    from zoo.hub import zoo_cache_dir
+    from zoo.proxy import bake_ahead
+
+    name, _, shape = spec.partition(":")
+    model = zoo.load(name)
+    if shape and shape not in model.shapes:
+        raise InputError(f"{model.name}@{model.version} has no shape {shape!r}; its shapes: {', '.join(model.shapes)}")
+    table = Table("shape", "bricks baked now", "bricks", "memory (MB)", "file (MB)", "seconds",
+                  title=f"proxies of {model.name}@{model.version} at margin {margin:g} m")
+    for stem in [shape] if shape else model.shapes:
+        done = bake_ahead(model.shape(stem), margin=margin, progress=progress, threads=threads)
+        table.add_row(done.shape, str(done.baked), str(done.bricks), f"{done.memory_bytes / 1e6:.1f}",
+                      f"{done.file_bytes / 1e6:.1f}", f"{done.seconds:.1f}")
+    console = Console()
+    console.print(table)
+    console.print(f"cache: {zoo_cache_dir() / 'proxies'} (ZOO_CACHE sets it)")

@@ -635,3 +635,33 @@ def test_a_proxy_baked_in_a_dropped_simulation_is_found_whole_in_the_cache_by_th
     for name in ("nodes", "status", "brick_of", "coarse_value", "coarse_grad"):  # NaN: a coarse value not evaluated
         assert np.array_equal(getattr(on_disk["drop"], name).numpy(), getattr(on_disk["exit"], name).numpy(),
                               equal_nan=name.startswith("coarse")), name
+
+
+@pytest.mark.slow  # the mug's whole bake at 1 mm: 25-40 s on 2 cores
+def test_zoo_bake_fills_the_cache_so_that_attach_bakes_nothing(tmp_path, monkeypatch):
+    """`zoo bake mugs:SHAPE` writes the shape's whole proxy to the cache; a simulation attached next (proxy baked ahead,
+    the default) finds it there and bakes no brick, at attach or in its steps. An unknown shape is a typed error."""
+    mujoco = pytest.importorskip("mujoco")
+    from typer.testing import CliRunner
+
+    import zoo.sim
+    from sdfzoo.cli.main import app, register_commands
+
+    monkeypatch.setenv("ZOO_CACHE", str(tmp_path))
+    register_commands()
+    result = CliRunner().invoke(app, ["bake", "mugs:hoi4d_mug_0001", "--no-progress"])
+    assert result.exit_code == 0, result.output
+    (folder,) = (tmp_path / "proxies").iterdir()
+    baked = load_proxy(folder)
+    assert baked.n_pending == 0 and baked.n_baked > 10_000 and "hoi4d_mug_0001" in result.output
+
+    model = mujoco.MjModel.from_xml_string("""<mujoco><worldbody><geom name="floor" type="box" size="0.1 0.1 0.01"/>
+        <body name="mug" pos="0 0 0.06"><freejoint/><geom type="sphere" size="0.04" contype="0" conaffinity="0"/></body>
+        </worldbody></mujoco>""")
+    world = zoo.sim.attach(model, {"mug": zoo.load("mugs").shape("hoi4d_mug_0001")})
+    world.step(mujoco.MjData(model), 5)
+    assert world.bake_seconds == 0.0 and world.proxies["mug"].lazy_bricks == 0
+    assert world.proxies["mug"].n_baked == baked.n_baked
+
+    with pytest.raises(InputError, match="no shape 'nope'"):
+        CliRunner().invoke(app, ["bake", "mugs:nope"], catch_exceptions=False, standalone_mode=False)

@@ -68,6 +68,7 @@ import os
 import time
 import warnings
 import weakref
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -916,6 +917,34 @@ def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: 
         proxy.attach_cache(folder, key)
         proxy.flush(force=True)
     return proxy
+
+
+@dataclass(frozen=True)
+class BakedAhead:
+    """What :func:`bake_ahead` did for one shape: the proxy, its shape's name, the bricks baked now (0: the cache had
+    them all), the bricks it holds, its bytes in memory and on disk, the seconds it took and its cache folder."""
+
+    proxy: ProxySDF
+    shape: str
+    baked: int
+    bricks: int
+    memory_bytes: int
+    file_bytes: int
+    seconds: float
+    folder: Path | None
+
+
+def bake_ahead(sdf, margin: float = 1e-3, progress: bool | None = None, threads: int | None = None) -> BakedAhead:
+    """Make the cached proxy of ``sdf`` at ``margin`` whole (:func:`cached_proxy`, then :meth:`ProxySDF.bake_all`) and
+    write it to the cache, so that a simulation at that margin starts with every brick it can reach (``zoo bake``)."""
+    started = time.perf_counter()
+    proxy = cached_proxy(sdf, margin=margin, progress=progress)
+    baked = proxy.bake_all(progress=progress, threads=threads)
+    proxy.flush()
+    file = None if proxy.folder is None else proxy.folder / PROXY_FILE
+    return BakedAhead(proxy=proxy, shape=getattr(sdf, "name", type(sdf).__name__), baked=baked, bricks=proxy.n_baked,
+                      memory_bytes=proxy.memory_bytes, file_bytes=file.stat().st_size if file else 0,
+                      seconds=time.perf_counter() - started, folder=proxy.folder)
 
 
 # proxies with a cache folder, written back at exit (weakly held: a proxy no longer used is not kept alive for it)

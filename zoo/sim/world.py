@@ -409,16 +409,15 @@ class World:
         if given is False or given is None or not self.coherence:
             return None
         if sdf_body.name not in self.proxies:
-            from ..proxy import cached_proxy, proxy_key
+            from ..proxy import bake_ahead, cached_proxy, proxy_key
 
             if isinstance(given, str) and (isinstance(self.proxy, dict) or proxy_key(sdf_body.sdf, {}) is not None):
-                proxy = cached_proxy(sdf_body.sdf, margin=self.margin)
                 if given == "ahead":
-                    started = time.perf_counter()
-                    proxy.bake_all()
-                    proxy.flush()
-                    self.bake_seconds += time.perf_counter() - started
-                self.proxies[sdf_body.name] = proxy
+                    done = bake_ahead(sdf_body.sdf, margin=self.margin)
+                    self.bake_seconds += done.seconds if done.baked else 0.0
+                    self.proxies[sdf_body.name] = done.proxy
+                else:
+                    self.proxies[sdf_body.name] = cached_proxy(sdf_body.sdf, margin=self.margin)
             else:  # the caller's own proxy, or None: an SDF that is not a model's shape
                 self.proxies[sdf_body.name] = None if isinstance(given, str) else given
         return self.proxies[sdf_body.name]
