@@ -24,7 +24,8 @@ import torch
 import trimesh
 
 import zoo
-from zoo.coherence import LEARNED_LIPSCHITZ, CoherentCollider, motion_lipschitz, screen_bound
+from zoo.coherence import CoherentCollider, screen_bound
+from zoo.collider import LEARNED_LIPSCHITZ, motion_lipschitz
 from zoo.errors import InputError
 from zoo.geometry import bary_to_points, barycentric_grid, invert_pose, transform_points
 from zoo.parts import plane

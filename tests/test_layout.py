@@ -42,6 +42,74 @@ def test_no_module_imports_another_modules_private_names():
     assert not offenders, "give these a public name in their module:\n" + "\n".join(offenders)
 
 
+def zoo_import_graph() -> dict[str, set[str]]:
+    """{zoo module: the zoo modules it imports}, from every import statement in it (a function's own too: an import
+    deferred to call time still ties the two modules together). ``zoo`` itself (the package's lazy names) is left
+    out: every module may ``import zoo`` for its public API."""
+    modules = {".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): p
+               for p in (ROOT / "zoo").rglob("*.py") if "pretrained" not in p.parts}
+    graph = {}
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        found = set()
+        for node in ast.walk(ast.parse(path.read_bytes())):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")[:len(package.split(".")) - node.level + 1]
+                    base = ".".join(parts + ([node.module] if node.module else []))
+                # `from X import m` names the module X.m where there is one, else a name of X itself
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+            else:
+                continue
+            for target in targets:
+                while target not in modules and "." in target:
+                    target = target.rpartition(".")[0]
+                if target in modules and target not in (name, "zoo"):
+                    found.add(target)
+        graph[name] = found
+    return graph
+
+
+def import_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One cycle of ``graph`` (its modules in order, the first repeated at the end), or [] where there is none."""
+    state, path = {}, []
+
+    def visit(module: str) -> list[str]:
+        state[module] = "open"
+        path.append(module)
+        for other in sorted(graph[module]):
+            if state.get(other) == "open":
+                return path[path.index(other):] + [other]
+            if other not in state and (cycle := visit(other)):
+                return cycle
+        state[module] = "done"
+        path.pop()
+        return []
+
+    for module in sorted(graph):
+        if module not in state and (cycle := visit(module)):
+            return cycle
+    return []
+
+
+def test_import_cycle_finds_a_cycle_and_passes_a_tree():
+    assert import_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert import_cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) == []
+
+
+def test_no_import_cycle_inside_zoo():
+    """The modules of ``zoo`` form layers: none imports, even inside a function, a module that imports it back
+    (issue 50: coherence, proxy and proxy_collider imported each other; they share zoo.collider now)."""
+    graph = zoo_import_graph()
+    assert {"zoo.coherence", "zoo.collider", "zoo.proxy", "zoo.sim.world"} <= set(graph)  # the graph is read
+    assert "zoo.collider" in graph["zoo.proxy_collider"] and "zoo.proxy" in graph["zoo.coherence"]
+    cycle = import_cycle(graph)
+    assert not cycle, "an import cycle: " + " -> ".join(cycle)
+
+
 IMPORT_EVERYTHING = """
 import importlib, pkgutil, sys
 import sdfzoo.benches, sdfzoo.cli, sdfzoo.pipeline, zoo.errors

@@ -25,7 +25,7 @@ _EXPORTS = {
     "Model": "model",
     "NeuralSDF": "neural", "NeuralShape": "neural",
     "Observation": "observation",
-    "list_models": "registry", "load": "registry", "load_shape": "shape_file",
+    "list_models": "registry", "load": "registry", "load_shape": "registry",
     "VoxelSDF": "voxel",
 }
 _SUBMODULES = ("errors", "geometry", "solvers")

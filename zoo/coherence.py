@@ -39,12 +39,13 @@ the savings). ``coherence=False`` calls ``zoo.collide``.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import torch
 from torch.nn import functional as F
 
-from .bounds import LIPSCHITZ, cell_lower_bounds, rounding_slack
+from .bounds import cell_lower_bounds, rounding_slack
+from .collider import REUSE_FRACTION, CoherenceStats, motion_lipschitz, moved_along_normal
 from .collision import (
     CLUSTER_CULL_MIN,
     Contacts,
@@ -60,7 +61,7 @@ from .collision import (
 from .errors import InputError
 from .geometry import bary_to_points, edge_lengths, invert_pose, transform_points, transform_vectors
 from .methods import check_supports, iterations
-from .sdf import Box, Capsule, Sphere, Torus, TransformedSDF, check_sdf
+from .sdf import check_sdf
 from .solvers import frank_wolfe, line_search_step
 from .validation import as_pose, int_at_least, non_negative_float, positive_float
 
@@ -68,10 +69,6 @@ COLD, WARM, KEPT = 0, 1, 2  # how a candidate is answered: from scratch, from it
 # A persisting candidate is warm-started only while its vertices moved less than this fraction of its
 # longest edge since the last step: farther, its last answer says little about the new minimum.
 WARM_REACH = 0.5
-# The Lipschitz bound a carried vertex bound decays with where the SDF is not an exact distance (a NeuralSDF,
-# a voxel grid, a caller's SDF without a ``lipschitz`` attribute). A learned SDF is only roughly 1-Lipschitz
-# (docs/coherence.md measures a packaged mug's gradient norms), and a bound carried over a motion inherits the error.
-LEARNED_LIPSCHITZ = 2.0
 # Value queries refining each line search of a warm step. One: a second sample lands next to the first once
 # the search has converged, and the interpolation through two nearly equal samples can throw the step far
 # off (zoo.solvers._interpolation_step).
@@ -83,12 +80,6 @@ WARM_EDGE_STEPS = 1
 # A warm answer whose Frank-Wolfe gap (SDF units) exceeds this is solved from scratch too. Warm answers on smooth
 # SDFs stay far below it; on a box, whose SDF has kinks where a line search stalls, many are above.
 RETRY_GAP = 1e-4
-# A candidate whose points moved less than this fraction of the margin (relative to the SDF) since it was last
-# solved keeps its answer, its depth moved to first order along its normal, as a persistent contact manifold
-# does (Bullet keeps a contact while it drifts a small fraction of the body's size). The depth's error is second
-# order in the drift where the surface is smooth, and the drift is measured
-# from where the face was last solved, so a sliding contact is solved again every few steps.
-REUSE_FRACTION = 0.2
 # When some kept answer is due to be solved again, those that drifted more than this fraction of ``reuse_distance``
 # are solved with it: a round of SDF queries costs about as much for a few faces as for a few hundred (each query
 # has a fixed cost), and faces solved together fall due together, so most steps need no round at all.
@@ -96,72 +87,6 @@ REFRESH_FRACTION = 0.5
 # Poses kept for the lasting proofs (one per call): when full, the proofs made at the older half are dropped (those faces
 # go back to the exact tests), so the history and its per-call work stay bounded however long the trajectory.
 POSE_HISTORY = 64
-# With a proxy: an answer of the SDF whose Frank-Wolfe gap exceeds this fraction of the margin is polished on the SDF by
-# one warm step (:func:`warm_step`); below it the proxy's minimiser is taken as the SDF's.
-POLISH_GAP_FRACTION = 0.02
-
-
-@dataclass
-class CoherenceStats:
-    """What :class:`CoherentCollider` did, summed over the steps counted.
-
-    Attributes:
-        steps: calls counted.
-        faces_near: faces whose box touches the SDF's bounds grown by the margin (collide's first cull, no query).
-        faces_skipped: of those, faces proven above the margin by the carried bounds, with no query.
-        cell_queries: SDF queries at cell centres (bounds for many vertices at once).
-        vertex_queries: SDF queries at mesh vertices.
-        candidates: triangles that reached the narrow phase (collide's candidates).
-        warm: of those, warm-started from their last barycentrics.
-        cold: of those, solved from scratch by the method.
-        retried: warm-started ones solved from scratch too (the warm answer's Frank-Wolfe gap exceeded ``RETRY_GAP``).
-        reused: of the candidates, answers kept from an earlier step with no query (moved less than ``reuse_distance``).
-        screened: of the warm-started, those the screen put above the margin (one value-and-gradient query each, no
-            descent: :func:`screen_bound`).
-        exact_faces: with a proxy, the faces whose proxy minimum came within the margin plus the proxy's error bound,
-            answered by the SDF itself (all the counts above are then of proxy queries).
-        exact_points: with a proxy, the points the SDF itself was asked at (values and gradients alike).
-        exact_kept: of ``exact_faces``, those whose SDF answer was kept from an earlier step (no query).
-        fallback: of ``exact_faces``, those whose proxy answer lay out of the proxy's band, solved from scratch on the SDF.
-    """
-
-    steps: int = 0
-    faces_near: int = 0
-    faces_skipped: int = 0
-    cell_queries: int = 0
-    vertex_queries: int = 0
-    candidates: int = 0
-    warm: int = 0
-    cold: int = 0
-    retried: int = 0
-    reused: int = 0
-    screened: int = 0
-    exact_faces: int = 0
-    exact_points: int = 0
-    exact_kept: int = 0
-    fallback: int = 0
-
-    def add(self, other: CoherenceStats) -> None:
-        for key in _STATS_FIELDS:  # not asdict: this runs at every step of every pair
-            setattr(self, key, getattr(self, key) + getattr(other, key))
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-
-_STATS_FIELDS = tuple(f.name for f in fields(CoherenceStats))
-
-
-def motion_lipschitz(sdf) -> float:
-    """The Lipschitz bound :class:`CoherentCollider` assumes of ``sdf`` when it carries a bound over a motion:
-    the SDF's own ``lipschitz`` attribute where it has one; :data:`zoo.bounds.LIPSCHITZ` for the exact
-    analytic SDFs (also rigidly placed); :data:`LEARNED_LIPSCHITZ` for anything else."""
-    given = getattr(sdf, "lipschitz", None)
-    if given is not None:
-        return positive_float(given, f"{type(sdf).__name__}.lipschitz")
-    if isinstance(sdf, TransformedSDF):
-        return motion_lipschitz(sdf.sdf)
-    return LIPSCHITZ if isinstance(sdf, (Sphere, Box, Torus, Capsule)) else LEARNED_LIPSCHITZ
 
 
 def frank_wolfe_gap(tri: torch.Tensor, bary: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
@@ -286,15 +211,6 @@ def _plane_descent(tri: torch.Tensor, bary: torch.Tensor, g: torch.Tensor) -> to
     on_edge = F.one_hot(k, 3).to(bary) - F.one_hot(j, 3).to(bary)
     direction = torch.where((blocked.sum(-1) == 1).unsqueeze(-1), along.unsqueeze(-1) * on_edge, direction)
     return torch.where((blocked.sum(-1) > 1).unsqueeze(-1), torch.zeros_like(direction), direction)
-
-
-def moved_along_normal(value: torch.Tensor, normal: torch.Tensor, tri: torch.Tensor, then: torch.Tensor,
-                       bary: torch.Tensor) -> torch.Tensor:
-    """A kept answer's depth (N,) now: ``value`` (N,) at barycentrics ``bary`` (N, 3) of faces that were at ``then``
-    (N, 3, 3) and are now at ``tri`` (N, 3, 3), moved to first order along its unit ``normal`` (N, 3) (unchanged where
-    the normal is NaN: none known)."""
-    shift = bary_to_points(tri, bary) - bary_to_points(then, bary)
-    return value + torch.nan_to_num((shift * normal).sum(dim=-1))
 
 
 class _CountingSDF:

@@ -9,7 +9,7 @@ back by trilinear interpolation, all points at once (numpy, no Python loop over 
 Which cells are baked (:func:`bake_proxy`). A coarse-to-fine pass with a Lipschitz-safe test: f at the
 centre of each brick of the SDF's bounds (grown by the band); a block of half-diagonal r whose centre
 value has |f| > L r + ``band`` holds no point within the band (f is L-Lipschitz, L the bound
-:func:`zoo.coherence.motion_lipschitz` gives: 2 for a NeuralSDF), and is dropped; the others are split
+:func:`zoo.collider.motion_lipschitz` gives: 2 for a NeuralSDF), and is dropped; the others are split
 into 8 and tested again, down to single cells. The kept cells' nodes are then evaluated (one query per
 distinct node). A dropped block leaves, over all its points, the lower bound f(centre) - L r, which is
 above ``band`` where f(centre) > 0 (outside) and far below -``band`` where it is < 0 (deep inside).
@@ -739,14 +739,14 @@ def bake_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: fl
         margin: m, the contact margin the proxy serves; sets the defaults of ``spacing`` and ``band``.
         spacing: m, the grid spacing (default :func:`default_spacing`).
         band: m, the half-width of the band baked (default :func:`default_band`); larger than ``margin``.
-        lipschitz: the bound of |grad f| the tests assume (default :func:`zoo.coherence.motion_lipschitz`).
+        lipschitz: the bound of |grad f| the tests assume (default :func:`zoo.collider.motion_lipschitz`).
         progress: show a bar (default: :func:`zoo.progress.shown`).
         seed: of the held-out points the error is measured on (and of a lazy proxy's sample of bricks).
         lazy: bake only the coarse grid near the surface and ``error_bricks`` random bricks that may hold band cells
             (the error is measured on those); reads bake the other bricks when they first need them. Else bake
             every brick now.
     """
-    from .coherence import motion_lipschitz
+    from .collider import motion_lipschitz
     from .progress import progress_bar, wanted
 
     check_sdf(sdf)
@@ -890,7 +890,7 @@ def cached_proxy(sdf, margin: float = 1e-3, spacing: float | None = None, band: 
     ``lazy`` (the default): bricks are baked when first read, and what was baked is written back to the cache by
     :meth:`ProxySDF.flush` and at the process's exit; the cached proxy goes on baking lazily when loaded again.
     ``lazy=False``: every brick is baked now (minutes for a NeuralSDF at 0.1 mm, docs/proxy.md)."""
-    from .coherence import motion_lipschitz
+    from .collider import motion_lipschitz
     from .hub import zoo_cache_dir
 
     check_sdf(sdf)

@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from .bounds import triangle_reach
-from .coherence import POLISH_GAP_FRACTION, CoherenceStats, moved_along_normal
+from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved_along_normal
 from .collision import Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
 from .geometry import face_normals
@@ -131,8 +131,6 @@ class ProxyCollider:
     def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *, iters: int | None = None,
                  polish: bool = True, reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba",
                  hold: bool = True, thin: Thinning | None = None):
-        from .coherence import REUSE_FRACTION
-
         if not callable(getattr(proxy, "read_numpy", None)) or not hasattr(proxy, "error_bound"):
             raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
         self.sdf, self.proxy, self.method = sdf, proxy, method

@@ -31,7 +31,7 @@ MISSING = 2  # a read's status where its brick is not ready (a lazy proxy): the 
 BOUNDARY = 1e-9  # as zoo.proxy_collider.BOUNDARY
 TINY = np.finfo(np.float64).tiny
 
-# counts[] slots the kernel fills (zoo.coherence.CoherenceStats names, and the kernel's own)
+# counts[] slots the kernel fills (zoo.collider.CoherenceStats names, and the kernel's own)
 N_OUT, FACES_NEAR, FACES_SKIPPED, CANDIDATES, WARM, COLD, SCREENED, READS, N_MISSING, N_SEARCHED = range(10)
 N_COUNTS = 10
 

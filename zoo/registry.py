@@ -468,3 +468,36 @@ def _disk_problems(where: str, entry: dict) -> list[str]:
     if counts != entry["parameters"]:
         problems.append(f"{where}: parameters {entry['parameters']} but the weights hold {counts}")
     return problems
+
+
+def load_shape(path: str | os.PathLike, model=None, device: str = "cpu", verify: bool = True):
+    """The NeuralShape saved in ``path`` (by ``NeuralShape.save``, :mod:`zoo.shape_file`), attached to its model.
+
+    ``model``: None loads the model the file names (``NAME@X.Y.Z``) through the registry
+    (``zoo.load``); a spec string (a package directory, ``hf-hub:...``) or a loaded Model is used
+    instead. Either way the model's decoder must be the one the codes were fitted against (its
+    sha256 is compared): another one is refused with :class:`~zoo.errors.ChecksumError`.
+    """
+    from .meshes import Similarity
+    from .neural import NeuralShape
+    from .shape_file import model_sha256, read_shape_file
+
+    codes, positions, meta = read_shape_file(path)
+    if model is None or isinstance(model, (str, os.PathLike)):
+        model = load(meta["model"] if model is None else model, device=device, verify=verify)
+    found = model_sha256(model.sdf.config, model.sdf.decoder)
+    if found != meta["model_sha256"]:
+        raise ChecksumError(
+            f"{path} was fitted against {meta['model']} (decoder sha256 {meta['model_sha256'][:12]}...), but the model "
+            f"given is {model.name}@{model.version} with decoder sha256 {found[:12]}...; its codes mean nothing to "
+            f"another decoder: load {meta['model']} (zoo.load_shape(path) does), or fit the mesh again against this model"
+        )
+    config = model.sdf.config
+    if tuple(codes.shape) != (config.n_codes, config.code_dim) or tuple(positions.shape) != (config.n_codes, 3):
+        raise DataError(f"{path} holds codes {tuple(codes.shape)} and positions {tuple(positions.shape)}; "
+                        f"{meta['model']} needs ({config.n_codes}, {config.code_dim}) and ({config.n_codes}, 3)")
+    dev = model.sdf.codes.device
+    shape = NeuralShape(meta["name"], model.sdf.decoder, config, codes.to(dev), positions.to(dev),
+                        Similarity.from_json(meta["similarity"]), model)
+    shape.fit, shape.metrics = json.loads(meta.get("fit", "{}")), json.loads(meta.get("metrics", "{}"))
+    return shape

@@ -14,8 +14,9 @@ meaningful only with the decoder it was fitted against. The file is one safetens
         fit, metrics                 JSON: how it was fitted (mesh, its sha256, iterations, seed, up axis)
                                      and how well (``zoo fit-codes``: near-surface error, sign agreement)
 
-``load_shape`` loads the model through the registry (or takes one), refuses it unless its
-``model_sha256`` matches, and returns the NeuralShape attached to it, in the mesh's frame and units.
+:func:`zoo.registry.load_shape` loads the model through the registry (or takes one), refuses it unless
+its ``model_sha256`` matches, and returns the NeuralShape attached to it, in the mesh's frame and units.
+This module is the file format alone, below ``zoo.neural`` in the imports.
 """
 
 from __future__ import annotations
@@ -105,36 +106,3 @@ def read_shape_file(path: str | os.PathLike) -> tuple[torch.Tensor, torch.Tensor
         raise ChecksumError(f"{path}: its codes or positions do not match their recorded sha256 (the file is damaged "
                             "or was edited); write it again with shape.save or `zoo fit-codes --out`")
     return codes, positions, meta
-
-
-def load_shape(path: str | os.PathLike, model=None, device: str = "cpu", verify: bool = True):
-    """The NeuralShape saved in ``path`` (by ``NeuralShape.save``), attached to its model.
-
-    ``model``: None loads the model the file names (``NAME@X.Y.Z``) through the registry
-    (``zoo.load``); a spec string (a package directory, ``hf-hub:...``) or a loaded Model is used
-    instead. Either way the model's decoder must be the one the codes were fitted against (its
-    sha256 is compared): another one is refused with :class:`~zoo.errors.ChecksumError`.
-    """
-    from .meshes import Similarity
-    from .neural import NeuralShape
-    from .registry import load
-
-    codes, positions, meta = read_shape_file(path)
-    if model is None or isinstance(model, (str, os.PathLike)):
-        model = load(meta["model"] if model is None else model, device=device, verify=verify)
-    found = model_sha256(model.sdf.config, model.sdf.decoder)
-    if found != meta["model_sha256"]:
-        raise ChecksumError(
-            f"{path} was fitted against {meta['model']} (decoder sha256 {meta['model_sha256'][:12]}...), but the model "
-            f"given is {model.name}@{model.version} with decoder sha256 {found[:12]}...; its codes mean nothing to "
-            f"another decoder: load {meta['model']} (zoo.load_shape(path) does), or fit the mesh again against this model"
-        )
-    config = model.sdf.config
-    if tuple(codes.shape) != (config.n_codes, config.code_dim) or tuple(positions.shape) != (config.n_codes, 3):
-        raise DataError(f"{path} holds codes {tuple(codes.shape)} and positions {tuple(positions.shape)}; "
-                        f"{meta['model']} needs ({config.n_codes}, {config.code_dim}) and ({config.n_codes}, 3)")
-    dev = model.sdf.codes.device
-    shape = NeuralShape(meta["name"], model.sdf.decoder, config, codes.to(dev), positions.to(dev),
-                        Similarity.from_json(meta["similarity"]), model)
-    shape.fit, shape.metrics = json.loads(meta.get("fit", "{}")), json.loads(meta.get("metrics", "{}"))
-    return shape

@@ -343,8 +343,8 @@ class Simulation:
         self.data.ctrl[body.actuator_id] = float(value)
 
     def collider_stats(self):
-        """``zoo.coherence.CoherenceStats`` summed over every pair's collider and step so far (all zero without coherence)."""
-        from ..coherence import CoherenceStats
+        """``zoo.collider.CoherenceStats`` summed over every pair's collider and step so far (all zero without coherence)."""
+        from ..collider import CoherenceStats
 
         return CoherenceStats() if self.world is None else self.world.collider_stats()
 

@@ -18,7 +18,7 @@ CONTACT_RESOLUTION = 128  # for a surface another SDF collides with
 _CACHE: dict[tuple[int, int], tuple[object, np.ndarray, np.ndarray]] = {}
 CHUNK = 65536  # points per SDF query: bounded memory for a network SDF
 COARSE = 4  # fine cells per coarse cell of the first, sparse sampling
-LIPSCHITZ = 2.0  # a bound on |grad f| that holds for the learned SDFs too (zoo.coherence.LEARNED_LIPSCHITZ)
+LIPSCHITZ = 2.0  # a bound on |grad f| that holds for the learned SDFs too (zoo.collider.LEARNED_LIPSCHITZ)
 
 
 def sdf_grid(sdf, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -511,8 +511,8 @@ class World:
                 pair.collider.reset()
 
     def collider_stats(self):
-        """``zoo.coherence.CoherenceStats`` summed over every pair's collider and call so far."""
-        from ..coherence import CoherenceStats
+        """``zoo.collider.CoherenceStats`` summed over every pair's collider and call so far."""
+        from ..collider import CoherenceStats
 
         total = CoherenceStats()
         for pair in self.pairs:
