@@ -314,3 +314,21 @@ def test_numpy_descent_direction_is_coherences():
     grads = torch.randn(500, 3, generator=g, dtype=torch.float64)
     expected = _plane_descent(tri, bary, grads).numpy()
     assert np.allclose(plane_descent_np(tri.numpy(), bary.numpy(), grads.numpy()), expected, atol=1e-9)
+
+
+def test_every_narrow_phase_is_a_collider_and_the_default_one_on_a_proxy_answers_its_calls():
+    """zoo.collider.Collider is the one interface of the narrow phases: CoherentCollider (with and without a proxy) and
+    ProxyCollider implement it, and CoherentCollider(proxy=...) answers through its ProxyCollider: the same contacts."""
+    from zoo.collider import Collider
+
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=2e-3, spacing=1e-3)
+    mesh = plane_mesh(max_edge=0.01)
+    on_proxy = zoo.CoherentCollider(sphere, mesh, margin=2e-3, method="fw", proxy=proxy)
+    plain = ProxyCollider(sphere, mesh, proxy, margin=2e-3, method="fw")
+    for collider in (zoo.CoherentCollider(sphere, mesh, margin=2e-3, method="fw"), on_proxy, plain):
+        assert isinstance(collider, Collider)
+    assert not isinstance(object(), Collider)
+    at = pose(translation=(0.0, 0.0, 0.0495))
+    a, b = on_proxy(at), plain(at)  # the SDF's pose; the plane's is the identity
+    assert len(a) > 0 and torch.equal(a.triangles, b.triangles) and torch.equal(a.depths, b.depths)
