@@ -356,7 +356,7 @@ def test_a_gripper_of_primitives_lifts_the_neuralsdf_mug_the_same_through_step_a
 def test_the_grasp_is_the_same_to_the_last_bit_whatever_the_proxy_cache_held(tmp_path, monkeypatch):
     """A scene gives the same trajectory from an empty proxy cache (its bricks baked lazily as the steps reach them,
     a few at a time), from the cache that run left, and from a cache baked ahead in other batches: a brick's values
-    do not depend on which bricks were baked with it (zoo.proxy's EVAL_BLOCK), as MuJoCo gives the same step for
+    do not depend on which bricks were baked with it (zoo.proxy's EVAL_MULTIPLE), as MuJoCo gives the same step for
     the same model and state."""
     import gc
 

@@ -86,8 +86,10 @@ BAND_CELLS = 2  # default band: the margin plus this many cells
 ERROR_SAMPLES = 16384  # held-out points the error is measured on
 ERROR_BRICKS = 64  # a lazy proxy's error is measured in this many random bricks, baked at its creation
 ERROR_SAFETY = 2.0  # error_bound = this times the largest error measured
-EVAL_BLOCK = 1024  # points per SDF call while baking, always (the last call padded): a network's float32 answer at a
-# point can depend on how many points share its call, and a brick's values must not depend on what it was baked with
+CHUNK = 1 << 15  # points per SDF call while baking, at most
+EVAL_MULTIPLE = 64  # every SDF call of a bake asks a multiple of this many points (the last padded): a network's
+# float32 answer at a point moved in its last bits where its call's size was not a multiple of 4 (the matrix
+# products' remainder rows), and a brick's values must not depend on what it was baked with (docs/proxy.md)
 BAKE_BATCH = 4096  # bricks baked together by bake_proxy(lazy=False) (bounds its memory; nodes shared within one)
 AHEAD_BATCH = 512  # bricks made ready together by ProxySDF.bake_all (a progress bar that moves)
 IN_BAND, ABOVE, UNKNOWN = 0, 1, -1  # read()'s status, and a cell's in ``status``
@@ -561,23 +563,24 @@ class ProxySDF:
         return self._evaluate_keys(keys, advance)[inverse]
 
     def _evaluate_keys(self, keys: np.ndarray, advance=None) -> np.ndarray:
-        """f (M,) float64 at the points of flat half-cell keys ``keys`` (M,): float32 points, ``EVAL_BLOCK`` a call
-        (the last call padded with copies of its last point), under ``torch.no_grad()``. Every bake asks its points
-        this way, so that a point's value is the same whichever points were baked with it (lazy or eager, in any
-        order): a proxy, and a simulation on it, do not depend on what the cache held."""
+        """f (M,) float64 at the points of flat half-cell keys ``keys`` (M,): float32 points, ``CHUNK`` at most a call,
+        each call padded to a multiple of ``EVAL_MULTIPLE`` points (copies of its last point), under
+        ``torch.no_grad()``. Every bake asks its points this way, so that a point's value is the same whichever
+        points were baked with it (lazy or ahead, in any order): a proxy, and a simulation on it, do not depend on
+        what the cache held."""
         dy, dz = self._half_dims[1], self._half_dims[2]
         half = np.stack([keys // (dy * dz), (keys // dz) % dy, keys % dz], axis=-1)
         points = torch.from_numpy(self._lo_np + (half / 2) * self.spacing).float()
-        if keys.size % EVAL_BLOCK:
-            points = torch.cat([points, points[-1:].expand(EVAL_BLOCK - keys.size % EVAL_BLOCK, 3)])
-        out = np.empty(points.shape[0], dtype=np.float64)
+        out = np.empty(keys.size, dtype=np.float64)
         with torch.no_grad():
-            for start in range(0, points.shape[0], EVAL_BLOCK):  # a loop over blocks, not points
-                block = points[start:start + EVAL_BLOCK]
-                out[start:start + EVAL_BLOCK] = torch.as_tensor(self.sdf(block)).detach().cpu().reshape(-1).double().numpy()
+            for start in range(0, keys.size, CHUNK):  # a loop over chunks, not points
+                chunk = points[start:start + CHUNK]
+                n = chunk.shape[0]
+                if n % EVAL_MULTIPLE:
+                    chunk = torch.cat([chunk, chunk[-1:].expand(EVAL_MULTIPLE - n % EVAL_MULTIPLE, 3)])
+                out[start:start + n] = torch.as_tensor(self.sdf(chunk)).detach().cpu().reshape(-1)[:n].double().numpy()
                 if advance is not None:
-                    advance(min(EVAL_BLOCK, keys.size - start))
-        out = out[:keys.size]
+                    advance(n)
         if not np.isfinite(out).all():
             raise InputError("the SDF returned NaN or Inf inside its own bounds; check its evaluation")
         return out
