@@ -398,7 +398,7 @@ class World:
             if self.reduce and pair.collider.proxy_collider is not None:  # only what the reduction can keep comes back
                 from ..proxy_collider import Thinning
 
-                pair.collider.proxy_collider.thin = Thinning(MERGE_CELL * self._merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
+                pair.collider.proxy_collider.thin = Thinning(MERGE_CELL * self.merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
             pair.refined = RefinedMesh(vertices, faces, cover, face_normals(vertices[faces]))
         return pair
 
@@ -555,7 +555,7 @@ class World:
             if usable is not None:
                 stats.raw_contacts += len(usable[0])
                 found.append((pair, *usable))
-        for pair, contacts, keep, arrays in self._exact(found):
+        for pair, contacts, keep, arrays in self.exact_answers(found):
             if not len(keep):
                 continue
             r = contact_rows(arrays, keep, (pair.sdf_body.geom, pair.geom))
@@ -635,21 +635,21 @@ class World:
         keep = np.nonzero(usable)[0]
         if self.reduce and len(keep):
             keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep],
-                                        merge_tol=self._merge_distance(sdf_body))]
+                                        merge_tol=self.merge_distance(sdf_body))]
         return contacts, keep, (points, depths, normals)
 
     @classmethod
     def flat_width(cls, sdf_body: SdfBody) -> float:
         """m: the widest face the flat-region pass makes for ``sdf_body``'s pairs (``FLAT_WIDTH_CELLS`` cells)."""
-        return FLAT_WIDTH_CELLS * MERGE_CELL * cls._merge_distance(sdf_body)
+        return FLAT_WIDTH_CELLS * MERGE_CELL * cls.merge_distance(sdf_body)
 
     @staticmethod
-    def _merge_distance(sdf_body: SdfBody) -> float:
+    def merge_distance(sdf_body: SdfBody) -> float:
         """m: the reduction's ``merge_tol`` for the contacts of ``sdf_body``'s pairs."""
         return MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
 
     @staticmethod
-    def _exact(found: list[tuple]) -> list[tuple]:
+    def exact_answers(found: list[tuple]) -> list[tuple]:
         """``found`` (pair, contacts, rows kept, their arrays) with the SDF's own contacts in place of the proxy's where
         a pair's proxy chose them (every row of them kept, those whose SDF depth is beyond the margin dropped): the
         pairs of a step on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
