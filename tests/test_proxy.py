@@ -499,7 +499,7 @@ def test_mug_on_rack_as_the_full_collider_and_collide(mug, mug_proxy):
         a, b, c = full(sdf_pose, mesh_pose), ours(sdf_pose, mesh_pose), deferred(sdf_pose, mesh_pose)
         assert len(b) > 50
         # both are within a few 1e-5 of the face's minimum (the full collider's answers up to 3.7e-5 above it, docs/coherence.md;
-        # the proxy's minimiser unpolished where its gap is under 2% of the margin), their points, so normals, 8 degrees
+        # the proxy's minimiser polished by one step where its gap is positive), their points, so normals, 8 degrees
         compare(a, b, margin, 5e-5)
         check_exact(mug, b, sdf_pose)
         if step % 4 == 0:

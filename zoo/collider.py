@@ -30,8 +30,10 @@ LEARNED_LIPSCHITZ = 2.0
 # from where the face was last solved, so a sliding contact is solved again every few steps.
 REUSE_FRACTION = 0.2
 # With a proxy: an answer of the SDF whose Frank-Wolfe gap exceeds this fraction of the margin is polished on the SDF by
-# one warm step (:func:`zoo.coherence.warm_step`); below it the proxy's minimiser is taken as the SDF's.
-POLISH_GAP_FRACTION = 0.02
+# one warm step (:func:`zoo.coherence.warm_step`); below it the proxy's minimiser is taken as the SDF's. 0: every answer
+# not at a minimum is polished. Where the proxy's error is comparable to a clearance (a nut's thread), a 2% threshold
+# left answers above the SDF's minimum, and the body sank deeper than on the full path (docs/proxy.md, "Fidelity").
+POLISH_GAP_FRACTION = 0.0
 
 
 @dataclass
