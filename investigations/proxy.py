@@ -312,8 +312,8 @@ def kernels(scenario: str, steps: int | None) -> dict:
 
 
 def network_costs(repeats: int = 200) -> dict:
-    """A NeuralSDF's value and gradient (``value_and_grad``) at 1, 3, 10, 64 and 1,000 points: microseconds a call on the
-    path it takes (numpy up to ``SMALL_BATCH`` points, torch's chain rule by hand above), and on torch's by-hand path
+    """A NeuralSDF's value and gradient (``value_and_grad``) at 1, 3, 10, 64, 256, 512 and 1,000 points: microseconds
+    a call on the path it takes (numpy up to ``SMALL_BATCH`` points, torch's chain rule by hand above), and on torch's by-hand path
     at the same points, float32, the mugs' hoi4d_mug_0001 and the bolts' factory_bolt_m16."""
     import zoo
     from zoo.neural_numpy import SMALL_BATCH
@@ -323,7 +323,7 @@ def network_costs(repeats: int = 200) -> dict:
         shape = zoo.load(model).shape(shape_name)
         lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in shape.bounds)
         rows = {}
-        for n in (1, 3, 10, 64, 1000):
+        for n in (1, 3, 10, 64, 256, 512, 1000):
             points = lo + torch.rand(n, 3, generator=torch.Generator().manual_seed(n)) * (hi - lo)
             taken = per_call_us(shape.value_and_grad, points, repeats) * n
             by_hand = per_call_us(functools.partial(shape._value_and_grad_by_hand, n=1 << 20), points, repeats) * n

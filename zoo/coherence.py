@@ -367,6 +367,17 @@ class CoherentCollider:
         """The :class:`zoo.proxy_collider.ProxyCollider` this collider runs on, or None without a proxy."""
         return self._on_proxy
 
+    @property
+    def thin(self):
+        """The :class:`zoo.proxy_collider.Thinning` of the proxy collider this collider runs on, or None."""
+        return None if self._on_proxy is None else self._on_proxy.thin
+
+    @thin.setter
+    def thin(self, thin) -> None:
+        if self._on_proxy is None:
+            raise InputError("thin= needs a proxy (proxy=, deferred=True): without one, every contact is the SDF's")
+        self._on_proxy.thin = thin
+
     def _proxy_collider(self, proxy, deferred: bool):
         """The :class:`zoo.proxy_collider.ProxyCollider` this collider runs on (see the class's ``proxy`` argument), or
         None without a proxy."""

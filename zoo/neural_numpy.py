@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-SMALL_BATCH = 64  # points: at most this many, on the CPU and without autograd, are asked in numpy
+SMALL_BATCH = 512  # points: at most this many, on the CPU and without autograd, are asked in numpy
 
 
 class NumpyNetwork:

@@ -47,7 +47,7 @@ Frank-Wolfe's vertex instead, so that such faces settle (and are held) rather th
 
 Thinning (``thin``, with ``deferred``: what ``zoo.sim`` sets). A simulation keeps, of a pair's contacts, at most
 the deepest per cell of its reduction's grid among those its filters let through: a call then returns only those
-(:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh, with more faces within the margin,
+that may be the deepest on the SDF, within twice the proxy's error of the proxy's deepest (:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh, with more faces within the margin,
 does not cost the caller more rows. Inside, the faces lie cluster after cluster and the vertices in the order the
 faces first use them (``_face_id`` maps back to the mesh's faces): a cluster's faces are neighbours in memory.
 
@@ -91,14 +91,15 @@ PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5
 @dataclass(frozen=True)
 class Thinning:
     """How a ``deferred`` collider thins its proxy contacts before it returns them (``ProxyCollider.thin``): per cell
-    of side ``cell`` (m, the world's integer grid), the deepest of the contacts a simulation can use, those that
+    of side ``cell`` (m, the world's integer grid), the contacts a simulation can use within twice the proxy's
+    ``error_bound`` of the deepest of them (any of which may be the SDF's deepest), those that
     face their faces (the normal, the proxy's, within |cos| ``touching_cos`` of the face's where the depth is at
     most 0, ``separated_cos`` beyond; a degenerate face always does) and, separated, close within the time
     (``closing`` = (u (3,), w (3,), seconds): u + w x p is the SDF body's velocity less the mesh's at the world point
     p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None: every one counts). These are
-    ``zoo.sim.contacts``' ``facing_faces`` and ``closing_in_time``, and its reduction keeps at most the deepest per
-    such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
-    faces within the margin, not more contacts in the manifold)."""
+    ``zoo.sim.contacts``' ``facing_faces`` and ``closing_in_time``, and its reduction, run on the SDF's answers at
+    these rows, keeps at most the deepest per such cell of what they let through: the rest would cost it work per
+    row for nothing (a finer mesh puts more faces within the margin, not more contacts in the manifold)."""
 
     cell: float
     touching_cos: float
@@ -236,7 +237,8 @@ class ProxyCollider:
         shift, turn, seconds = (np.zeros(3), np.zeros(3), -1.0) if thin.closing is None else thin.closing
         return thinned_rows(values, bary, tri, grads, faces, search, self._normal, rotation, sdf_pose[:3, :3],
                             sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
-                            np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds))
+                            np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds),
+                            2 * self.proxy.error_bound)
 
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in
@@ -539,10 +541,11 @@ class ProxyCollider:
 
 def exact_contacts_together(requests) -> list[Contacts]:
     """:meth:`ProxyCollider.exact_contacts` for several colliders at once (``requests``: (collider, rows (R,)) pairs,
-    each collider called ``deferred`` first): the colliders that answer on the same SDF and proxy, in the same way,
+    each collider a ProxyCollider or a CoherentCollider on one, called ``deferred`` first): the colliders that answer on the same SDF and proxy, in the same way,
     ask the SDF together, one query for all their faces (and one for all their polishing steps), as a step's pairs
     on one body do. The contacts of each, in the order given; each collider's stats count its own faces, the
     first of a group the group's queries."""
+    requests = [(getattr(collider, "proxy_collider", collider), rows) for collider, rows in requests]  # a CoherentCollider's
     groups: dict[tuple, list[int]] = {}
     for i, (collider, _) in enumerate(requests):
         if collider._pending is None:

@@ -365,16 +365,18 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
 
 
 @njit(cache=True)
-def deepest_per_cell(cells, values):
-    """Of the rows (N,) sharing a cell ``cells`` (N, 3) int64, the one of least ``values`` (N,) (the first of
-    equals): their indices (K,), ascending. One pass over an open-addressing table, where sorting
-    the rows by cell would cost more than the rows' other work."""
+def near_deepest_per_cell(cells, values, band):
+    """The rows (N,) whose ``values`` (N,) are within ``band`` of the least of the rows sharing their cell ``cells``
+    (N, 3) int64: their indices (K,), ascending (band 0: the least and its equals). Two passes over an open-addressing
+    table, where sorting the rows by cell would cost more than the rows' other work: each cell's least value, then
+    the rows near it."""
     n = values.shape[0]
     size = 16
     while size < 2 * n:
         size *= 2
     mask = size - 1
     slot_row = np.full(size, -1, dtype=np.int64)
+    slot_of = np.empty(n, dtype=np.int64)
     for i in range(n):
         h = (cells[i, 0] * 73856093) ^ (cells[i, 1] * 19349663) ^ (cells[i, 2] * 83492791)
         s = h & mask
@@ -388,16 +390,22 @@ def deepest_per_cell(cells, values):
                     slot_row[s] = i
                 break
             s = (s + 1) & mask
-    rows = slot_row[slot_row >= 0]
-    rows.sort()
-    return rows
+        slot_of[i] = s
+    rows = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if values[i] <= values[slot_row[slot_of[i]]] + band:
+            rows[m] = i
+            m += 1
+    return rows[:m]
 
 
 @njit(cache=True)
 def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation, sdf_rotation, sdf_shift, cell,
-                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds):
+                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band):
     """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
-    contacts (the answers at most ``search``), in one pass: per cell, the deepest of those a simulation can use.
+    contacts (the answers at most ``search``), in one pass: per cell, those a simulation can use within ``band`` of
+    the deepest of them (the proxy's depths are known to within its error: any of these may be the SDF's deepest).
 
     Args:
         values (N,), bary (N, 3), tri (N, 3, 3), grads (N, 3), faces (N,): the answers (the SDF's frame).
@@ -405,6 +413,7 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
             mesh's in the SDF's frame. sdf_rotation (3, 3), sdf_shift (3,): the SDF's pose in the world.
         cell, touching_cos, separated_cos: the ``Thinning``'s; closing_shift (3,), closing_turn (3,),
             closing_seconds: its ``closing`` (u, w, seconds; seconds < 0: none).
+        band: m, twice the proxy's error bound.
     """
     n = values.shape[0]
     cells = np.empty((n, 3), dtype=np.int64)
@@ -445,4 +454,4 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
         rows[m] = i
         kept_values[m] = value
         m += 1
-    return rows[deepest_per_cell(cells[:m], kept_values[:m])]
+    return rows[near_deepest_per_cell(cells[:m], kept_values[:m], band)]

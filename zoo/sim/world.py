@@ -201,6 +201,21 @@ class Pair:
 
 
 @dataclass
+class PairContacts:
+    """One pair's contacts at a step (world frame) and the rows of them MuJoCo can use: ``points`` (K, 3),
+    ``depths`` (K,), ``normals`` (K, 3) (the SDF's, as :func:`as_numpy` gives them), ``faces_world`` (K, 3) their
+    mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows kept so far."""
+
+    pair: Pair
+    contacts: object  # zoo.Contacts
+    points: np.ndarray
+    depths: np.ndarray
+    normals: np.ndarray
+    faces_world: np.ndarray
+    usable: np.ndarray
+
+
+@dataclass
 class StepStats:
     """What the last detection did: contacts added (after the reduction), found (before it), the deepest
     penetration (m, >= 0), the largest margin used, whether a pair was speculative, its wall time (s) and
@@ -395,10 +410,10 @@ class World:
             mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
             pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
                                                  coherence=self.coherence, proxy=self._proxy_for(sdf_body), deferred=True)
-            if self.reduce and pair.collider.proxy_collider is not None:  # only what the reduction can keep comes back
+            if self.reduce and pair.collider.deferred:  # only what the reduction can keep comes back
                 from ..proxy_collider import Thinning
 
-                pair.collider.proxy_collider.thin = Thinning(MERGE_CELL * self.merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
+                pair.collider.thin = Thinning(MERGE_CELL * self.merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
             pair.refined = RefinedMesh(vertices, faces, cover, face_normals(vertices[faces]))
         return pair
 
@@ -544,7 +559,7 @@ class World:
             stats.speculative |= closing > max(self.margin, pair.params.margin)
             near.append((pair, margin))
         segments = self._collide_segments([(p, m) for p, m in near if p.kind == "segment"], data)
-        found = []  # (pair, contacts, the rows kept, their arrays)
+        found = []  # PairContacts of the pairs with contacts MuJoCo can use
         for pair, margin in near:
             if pair.kind == "segment":
                 contacts, faces_world = segments.get(id(pair), (None, None))
@@ -553,14 +568,16 @@ class World:
                 contacts, faces_world = self._collide(pair, data, margin)
             usable = self._usable(pair, data, contacts, faces_world, velocities)
             if usable is not None:
-                stats.raw_contacts += len(usable[0])
-                found.append((pair, *usable))
-        for pair, contacts, keep, arrays in self.exact_answers(found):
+                stats.raw_contacts += len(usable.depths)
+                found.append(usable)
+        for found_pair in self.exact_answers(found):
+            keep = self._reduced(found_pair)
             if not len(keep):
                 continue
-            r = contact_rows(arrays, keep, (pair.sdf_body.geom, pair.geom))
-            rows.append((r, pair.params))
-            collected.append(_select(contacts, keep))
+            r = contact_rows((found_pair.points, found_pair.depths, found_pair.normals), keep,
+                             (found_pair.pair.sdf_body.geom, found_pair.pair.geom))
+            rows.append((r, found_pair.pair.params))
+            collected.append(_select(found_pair.contacts, keep))
             geoms.append(r.geom)
             deepest = max(deepest, -float(r.dist.min()))
         stats.max_penetration = deepest
@@ -593,8 +610,8 @@ class World:
     def _give_closing(self, pair: Pair, data, velocities: dict) -> None:
         """Give the pair's proxy collider, where it thins its contacts, this step's relative motion of the two bodies
         (``Thinning.closing``: what :func:`closing_in_time` tests in :meth:`_usable`)."""
-        collider = getattr(pair.collider, "proxy_collider", None)
-        if collider is None or collider.thin is None:
+        collider = pair.collider
+        if getattr(collider, "thin", None) is None:
             return
         a, b = velocities[pair.sdf_body.body], velocities[pair.body]
         shift = a[:3] - b[:3] - np.cross(a[3:], data.xpos[pair.sdf_body.body]) + np.cross(b[3:], data.xpos[pair.body])
@@ -618,11 +635,9 @@ class World:
             contacts.triangles = pair.refined.surface_faces(contacts.triangles, contacts.bary)
         return contacts, faces_world
 
-    def _usable(self, pair: Pair, data, contacts, faces_world, velocities: dict):
-        """(contacts, the indices MuJoCo gets, their :func:`as_numpy` arrays), or None where there are none.
-
-        The contacts MuJoCo can use, before the reduction picks among them: facing their faces, and touching or
-        closing within the step (a separated one beyond that would only brake the bodies at a distance).
+    def _usable(self, pair: Pair, data, contacts, faces_world, velocities: dict) -> PairContacts | None:
+        """The pair's contacts with the rows MuJoCo can use, or None where there are none: facing their faces, and
+        touching or closing within the step (a separated one beyond that would only brake the bodies at a distance).
         """
         if contacts is None or len(contacts) == 0:
             return None
@@ -632,11 +647,16 @@ class World:
         motion_b = (data.xpos[pair.body].copy(), velocities[pair.body])
         usable = facing_faces(normals, faces_world, depths) & closing_in_time(
             points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
-        keep = np.nonzero(usable)[0]
-        if self.reduce and len(keep):
-            keep = keep[reduce_contacts(points[keep], depths[keep], normals[keep], faces_world[keep],
-                                        merge_tol=self.merge_distance(sdf_body))]
-        return contacts, keep, (points, depths, normals)
+        return PairContacts(pair, contacts, points, depths, normals, faces_world, np.nonzero(usable)[0])
+
+    def _reduced(self, found: PairContacts) -> np.ndarray:
+        """The usable rows (R,) the reduction keeps (all of them with ``reduce=False``): a manifold per patch, on
+        the SDF's own depths (a proxy's pair is reduced after the SDF answered its rows)."""
+        keep = found.usable
+        if not self.reduce or not len(keep):
+            return keep
+        return keep[reduce_contacts(found.points[keep], found.depths[keep], found.normals[keep], found.faces_world[keep],
+                                    merge_tol=self.merge_distance(found.pair.sdf_body))]
 
     @classmethod
     def flat_width(cls, sdf_body: SdfBody) -> float:
@@ -649,21 +669,24 @@ class World:
         return MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
 
     @staticmethod
-    def exact_answers(found: list[tuple]) -> list[tuple]:
-        """``found`` (pair, contacts, rows kept, their arrays) with the SDF's own contacts in place of the proxy's where
-        a pair's proxy chose them (every row of them kept, those whose SDF depth is beyond the margin dropped): the
-        pairs of a step on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
+    def exact_answers(found: list[PairContacts]) -> list[PairContacts]:
+        """``found`` with the SDF's own contacts in place of the proxy's where a pair's proxy chose them (at its usable
+        rows, those whose SDF depth is beyond the margin dropped, every row of the rest usable): the pairs of a step
+        on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
         from ..proxy_collider import exact_contacts_together
 
-        deferred = [i for i, (pair, _, keep, _) in enumerate(found) if len(keep) and getattr(pair.collider, "deferred", False)]
+        deferred = [i for i, f in enumerate(found) if len(f.usable) and getattr(f.pair.collider, "deferred", False)]
         if not deferred:
             return found
         found = list(found)
-        answers = exact_contacts_together([(found[i][0].collider.proxy_collider, found[i][2]) for i in deferred])
+        answers = exact_contacts_together([(found[i].pair.collider, found[i].usable) for i in deferred])
         for i, contacts in zip(deferred, answers):
-            pair = found[i][0]
-            contacts.triangles = pair.refined.surface_faces(contacts.triangles, contacts.bary)
-            found[i] = (pair, contacts, np.arange(len(contacts)), as_numpy(contacts))
+            asked = found[i]
+            # the answers keep the asked rows' order, less those beyond the margin; a call answers a face once
+            answered = np.isin(np.asarray(asked.contacts.triangles)[asked.usable], np.asarray(contacts.triangles))
+            faces_world = asked.faces_world[asked.usable[answered]]
+            contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
+            found[i] = PairContacts(asked.pair, contacts, *as_numpy(contacts), faces_world, np.arange(len(contacts)))
         return found
 
     def _collide_refining_near(self, pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float):

@@ -1,0 +1,106 @@
+"""How deep each contact path lets bodies sink, and where they end, on scenes no tuning of the fast path used.
+
+Each scene runs on the default path (the proxy, baked lazily: the same trajectory as baked ahead) and on the full
+path (amortized from scratch, ``coherence=False``, the reference), each in its own process with one torch thread:
+
+- ``nut-torque``: the nut of ``scenes/sim-bolt-nut.toml`` turned by the Bolt-Nut scenario's torque
+  (``benches/sim_scenarios.py``: a feed-forward and a speed servo), 70 steps;
+- ``nut-torque-x2``: the same nut under twice the feed-forward, servoed to twice the speed;
+- ``nut-heavy``: the scenario's torque on a nut four times as heavy (its mass and inertia);
+- ``mug-rack-2mm``: the mug of ``scenes/mug-rack.toml`` released 2 mm above its hanging pose on the peg, 0.3 s;
+- ``mug-drop-5cm``: the same mug dropped from 5 cm onto the rack, 0.4 s.
+
+Reports per scene and path the deepest penetration (the path's own contacts; the nut's over steps 40-60, the
+mug's over the whole run) and the median over those steps of a step's deepest, where the tracked body ends (the nut along the bolt, the mug's position), the time per
+step, and the default against the full path.
+
+    python -m investigations fidelity --out out/fidelity.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+# scene name -> (scene file, steps, the window of steps whose deepest penetration counts, options of the run)
+SCENES = {
+    "nut-torque": ("sim-bolt-nut", 70, (40, 61), {"torque": 1.0, "speed": 1.0, "mass": 1.0}),
+    "nut-torque-x2": ("sim-bolt-nut", 70, (40, 61), {"torque": 2.0, "speed": 2.0, "mass": 1.0}),
+    "nut-heavy": ("sim-bolt-nut", 70, (40, 61), {"torque": 1.0, "speed": 1.0, "mass": 4.0}),
+    "mug-rack-2mm": ("mug-rack", 150, (0, 150), {"drop": 0.002}),
+    "mug-drop-5cm": ("mug-rack", 200, (0, 200), {"drop": 0.05}),
+}
+PATHS = {"default": {"proxy": "lazy"}, "full": {"coherence": False}}
+
+ONE_RUN = """
+import json, sys, time
+import numpy as np, torch
+torch.set_num_threads(1)
+import zoo, zoo.sim
+from sdfzoo.benches.sim_scenarios import NUT_KV, NUT_SPEED, NUT_TORQUE
+scene, steps, lo, hi, options, path = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), json.loads(sys.argv[5]), json.loads(sys.argv[6])
+nut = "torque" in options
+sim = zoo.sim.load_scene(scene, drop=options.get("drop"), **path)
+sim.build()
+body = "nut" if nut else "sdf"  # scenes/mug-rack.toml names its mug "sdf"
+if nut:
+    i = sim.bodies["nut"].body_id
+    sim.model.body_mass[i] *= options["mass"]
+    sim.model.body_inertia[i] *= options["mass"]
+deepest, started = [], time.perf_counter()
+for _ in range(steps):
+    if nut:
+        spin = float(sim.velocity("nut")[5])
+        sim.data.xfrc_applied[i, 3:] = (0.0, 0.0, options["torque"] * NUT_TORQUE + NUT_KV * (options["speed"] * NUT_SPEED - spin))
+    sim.step()
+    deepest.append(sim.log[-1].max_penetration)
+wall = time.perf_counter() - started
+print(json.dumps({"deepest_mm": 1e3 * max(deepest[lo:hi]), "median_deepest_mm": 1e3 * float(np.median(deepest[lo:hi])),
+                  "end_m": sim.pose(body)[:3, 3].tolist(),
+                  "ms_per_step": 1e3 * wall / steps}))
+"""
+
+
+def one_run(scene: str, path: str) -> dict:
+    file, steps, (lo, hi), options = SCENES[scene]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", ONE_RUN, file, str(steps), str(lo), str(hi), json.dumps(options),
+                           json.dumps(PATHS[path])], env=env, capture_output=True, text=True, timeout=7200)
+    if done.returncode:
+        raise RuntimeError(done.stderr[-3000:])
+    return {"scene": scene, "path": path, **json.loads(done.stdout.strip().splitlines()[-1])}
+
+
+def compared(default: dict, full: dict) -> dict:
+    """The default path against the full one: depth ratio, and how far apart they end (the nut along the bolt)."""
+    ends = [default["end_m"], full["end_m"]]
+    apart = abs(ends[0][2] - ends[1][2]) if default["scene"].startswith("nut") else sum((a - b) ** 2 for a, b in zip(*ends)) ** 0.5
+    return {"scene": default["scene"], "depth_ratio": default["deepest_mm"] / full["deepest_mm"],
+            "median_depth_ratio": default["median_deepest_mm"] / full["median_deepest_mm"],
+            "ends_apart_mm": 1e3 * apart, "speedup": full["ms_per_step"] / default["ms_per_step"]}
+
+
+def main(argv=None) -> None:
+    from investigations.report import write_report
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", action="append", choices=sorted(SCENES), default=[], help="default: all")
+    parser.add_argument("--out", default="out/fidelity.json")
+    args = parser.parse_args(argv)
+    runs, comparisons = [], []
+    for scene in args.scene or SCENES:
+        default, full = one_run(scene, "default"), one_run(scene, "full")
+        runs += [default, full]
+        comparisons.append(compared(default, full))
+        c = comparisons[-1]
+        print(f"{scene:>14}: deepest {default['deepest_mm']:.4f} mm (full {full['deepest_mm']:.4f}, "
+              f"{c['depth_ratio']:.2f}x; a step's median {c['median_depth_ratio']:.2f}x); ends {c['ends_apart_mm']:.4f} mm apart; "
+              f"{default['ms_per_step']:.1f} ms a step (full {full['ms_per_step']:.0f})", flush=True)
+    write_report(args.out, {"runs": runs, "compared": comparisons}, "fidelity", argv)
+
+
+if __name__ == "__main__":
+    main()
