@@ -198,44 +198,42 @@ class ProxyCollider:
         held = self._held
         if held is not None and held.search == search and self._moved_at_most(held.relative, relative, search) <= self.reuse_distance:
             t1 = time.perf_counter()
-            faces, tri, bary, values, grads, status = held.carried(self._v[self._f[held.faces]] @ rotation.T + shift)
-            stats.reused = len(held.faces)
+            found = held.carried(self._v[self._f[held.answers.faces]] @ rotation.T + shift)
+            stats.reused = len(found.faces)
         else:
             # the faces a motion of reuse_distance cannot bring within the search margin are left out of what is held
             net = search + self.proxy.lipschitz * self.reuse_distance
             if self.kernel == "numba":
-                faces, tri, bary, values, grads, status = self._compiled_search(rotation, shift, search, net, stats)
+                found = self._compiled_search(rotation, shift, search, net, stats)
             else:
-                faces, tri, bary, values, grads, status = self._numpy_search(rotation, shift, search, net, stats)
+                found = self._numpy_search(rotation, shift, search, net, stats)
             t1 = time.perf_counter()
-            self._held = _Held(relative, search, faces, tri, bary, values, grads, status)
+            self._held = _Held(relative, search, found)
         if self.deferred and self.thin is not None:
-            rows = self._thinned(sdf_pose, rotation, search, faces, tri, bary, values, grads)
+            found = found.take(self._thinned(sdf_pose, rotation, search, found))
         else:
-            rows = np.flatnonzero(values <= search)
-        faces, tri, bary, values, grads, status = faces[rows], tri[rows], bary[rows], values[rows], grads[rows], status[rows]
-        points = np.einsum("sv,svc->sc", bary, tri)
-        self._pending = _ProxyContacts(sdf_pose, faces, tri, bary, status, margin)
-        self.last_candidates = torch.from_numpy(self._face_id[faces])
+            found = found.take(np.flatnonzero(found.values <= search))
+        self._pending = _ProxyContacts(sdf_pose, found.faces, found.tri, found.bary, found.status, margin)
+        self.last_candidates = torch.from_numpy(self._face_id[found.faces])
         t2 = time.perf_counter()
         if self.deferred:
-            contacts = self._contacts(sdf_pose, faces, bary, points, values, _unit(grads))
+            contacts = self._contacts(sdf_pose, found.faces, found.bary, found.points(), found.values, _unit(found.grads))
         else:
-            contacts = self._exact(np.arange(len(faces)), stats)
+            contacts = self._exact(np.arange(len(found.faces)), stats)
         contacts.n_candidates = int(stats.candidates)
         contacts.timings = {"broad": t1 - t0, "narrow": t2 - t1, "normals": time.perf_counter() - t2}
         self.last_stats = stats
         self.stats.add(stats)
         return contacts
 
-    def _thinned(self, sdf_pose, rotation, search: float, faces, tri, bary, values, grads) -> np.ndarray:
-        """The rows (K,) of the answers (faces (N,), SDF-frame corners (N, 3, 3), bary (N, 3), values (N,), gradients
-        (N, 3)) that are proxy contacts (at most ``search``) and that ``thin`` keeps (see :class:`Thinning`)."""
+    def _thinned(self, sdf_pose, rotation, search: float, found: ProxyAnswers) -> np.ndarray:
+        """The rows (K,) of ``found`` that are proxy contacts (at most ``search``) and that ``thin`` keeps (see
+        :class:`Thinning`)."""
         from .proxy_kernel import thinned_rows
 
         thin = self.thin
         shift, turn, seconds = (np.zeros(3), np.zeros(3), -1.0) if thin.closing is None else thin.closing
-        return thinned_rows(values, bary, tri, grads, faces, search, self._normal, rotation, sdf_pose[:3, :3],
+        return thinned_rows(found.values, found.bary, found.tri, found.grads, found.faces, search, self._normal, rotation, sdf_pose[:3, :3],
                             sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
                             np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds),
                             2 * self.proxy.error_bound)
@@ -267,7 +265,8 @@ class ProxyCollider:
 
     # -- the compiled passes (zoo.proxy_kernel) --------------------------------------------------------------------
 
-    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats, n_clusters=None):
+    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats,
+                         n_clusters=None) -> ProxyAnswers:
         """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`) over the first
         ``n_clusters`` clusters (default: all), passing over the faces held above the margin (``hold``); a lazy
         proxy's bricks the reads met not ready are made ready and the call made again, until none is met."""
@@ -306,16 +305,15 @@ class ProxyCollider:
         searched = int(c[kernel.N_SEARCHED])
         self._last_bary[k.searched_face[:searched]] = k.searched_bary[:searched]
         n = int(c[kernel.N_OUT])
-        return (k.face[:n].copy(), k.tri[:n].copy(), k.bary[:n].copy(), k.value[:n].copy(), k.grad[:n].copy(),
-                k.status[:n].copy())
+        return ProxyAnswers(k.face[:n].copy(), k.tri[:n].copy(), k.bary[:n].copy(), k.value[:n].copy(), k.grad[:n].copy(),
+                            k.status[:n].copy())
 
-    def _numpy_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats):
-        """The faces whose proxy minimum is at most ``net``: (faces (N,), their corners (N, 3, 3) in the SDF's frame,
-        bary (N, 3), values (N,), gradients (N, 3), status (N,)) at the minima (see the module docstring)."""
+    def _numpy_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats) -> ProxyAnswers:
+        """The faces whose proxy minimum is at most ``net``, with the proxy at their minima (see the module
+        docstring)."""
         faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
         bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
-        within = values <= net
-        return faces[within], tri[within], bary[within], values[within], grads[within], status[within]
+        return ProxyAnswers(faces, tri, bary, values, grads, status).take(np.flatnonzero(values <= net))
 
     # -- culling -------------------------------------------------------------------------------------------------
 
@@ -691,14 +689,11 @@ class _HeldBounds:
 
 
 @dataclass
-class _Held:
-    """A full search's answers on the faces within its net: what later calls carry while the mesh moves less than
-    ``reuse_distance`` relative to the SDF (a persistent contact manifold), their values moved to first order along
-    their normals. ``relative``: the 4x4 SDF-from-mesh pose then; ``search``: the search margin then; ``faces`` (H,),
-    ``tri`` (H, 3, 3) SDF frame then, ``bary`` (H, 3), proxy ``values`` (H,), ``grads`` (H, 3) and ``status`` (H,)."""
+class ProxyAnswers:
+    """The proxy's minima over faces, as a search leaves them: ``faces`` (N,) (the collider's order), their corners
+    ``tri`` (N, 3, 3) in the SDF's frame, the minimisers ``bary`` (N, 3), the proxy's ``values`` (N,), ``grads``
+    (N, 3) and ``status`` (N,) there."""
 
-    relative: np.ndarray
-    search: float
     faces: np.ndarray
     tri: np.ndarray
     bary: np.ndarray
@@ -706,10 +701,31 @@ class _Held:
     grads: np.ndarray
     status: np.ndarray
 
-    def carried(self, tri: np.ndarray):
-        """(faces, tri, bary, values, grads, status) with the faces now at ``tri`` (H, 3, 3)."""
-        values = moved_along_normal(*(torch.from_numpy(a) for a in (self.values, _unit(self.grads), tri, self.tri, self.bary)))
-        return self.faces, tri, self.bary, values.numpy(), self.grads, self.status
+    def take(self, rows: np.ndarray) -> ProxyAnswers:
+        """The answers at ``rows`` (K,), in that order."""
+        return ProxyAnswers(self.faces[rows], self.tri[rows], self.bary[rows], self.values[rows], self.grads[rows],
+                            self.status[rows])
+
+    def points(self) -> np.ndarray:
+        """(N, 3) the minimisers in the SDF's frame."""
+        return np.einsum("nv,nvc->nc", self.bary, self.tri)
+
+
+@dataclass
+class _Held:
+    """A full search's ``answers`` on the faces within its net: what later calls carry while the mesh moves less
+    than ``reuse_distance`` relative to the SDF (a persistent contact manifold), their values moved to first order
+    along their normals. ``relative``: the 4x4 SDF-from-mesh pose then; ``search``: the search margin then."""
+
+    relative: np.ndarray
+    search: float
+    answers: ProxyAnswers
+
+    def carried(self, tri: np.ndarray) -> ProxyAnswers:
+        """The answers with the faces now at ``tri`` (H, 3, 3) (the SDF's frame)."""
+        a = self.answers
+        values = moved_along_normal(*(torch.from_numpy(x) for x in (a.values, _unit(a.grads), tri, a.tri, a.bary)))
+        return ProxyAnswers(a.faces, tri, a.bary, values.numpy(), a.grads, a.status)
 
 
 # -- geometry in numpy (a step's few faces: numpy's per-call cost is a fraction of torch's) ---------------------------

@@ -75,6 +75,7 @@ from .geoms import (
     native_colliders,
     partner_geoms,
 )
+from .segments import segment_minima
 from .surface import CONTACT_RESOLUTION, surface_mesh
 
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
@@ -738,13 +739,11 @@ class World:
             radii = np.array([pair.radius for pair, _ in pairs])
             margins = np.array([margin for _, margin in pairs])
             dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
-            centres, owner = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
-                                            radii + margins, dtype)
-            if not len(centres):
+            minima = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
+                                    radii + margins, dtype)
+            if not len(minima.points):
                 continue
-            with torch.no_grad():
-                values, grads = sdf_body.sdf.value_and_grad(torch.as_tensor(centres, dtype=dtype))
-            values, grads = values.double().cpu().numpy().reshape(-1), grads.double().cpu().numpy().reshape(-1, 3)
+            centres, owner, values, grads = minima.points, minima.owner, minima.values, minima.grads
             length = np.linalg.norm(grads, axis=1, keepdims=True)
             normals = grads / np.where(length > 0, length, 1.0)
             depths = values - radii[owner]
@@ -778,59 +777,6 @@ class World:
 
 
 # -- helpers ---------------------------------------------------------------------------------------
-
-
-SEGMENT_SAMPLES = 9  # points along a capsule's axis where f is read before the search narrows around the lowest
-SEGMENT_REFINE = 8  # golden-section steps around it: the bracket shrinks to 0.618^8 (2%) of two samples' spacing
-SEGMENT_LIPSCHITZ = 2.0  # |grad f| bound used to drop a segment from its samples (a learned SDF's, zoo.coherence's)
-
-
-def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray]:
-    """Points on the segments from ``a`` to ``b`` (S, 3) where ``sdf`` is least, all segments at once.
-
-    Each segment is sampled at ``SEGMENT_SAMPLES`` points; a segment whose samples, less the Lipschitz bound times
-    half their spacing, stay above its ``reach`` (S,) (its radius plus margin) is dropped; for the others a
-    golden-section search narrows around the lowest sample, and the minimum and the segment's two ends are returned
-    (a capsule lying on a flat face touches along its length: its ends hold it level). A segment of no length (a
-    sphere) gives its one point.
-
-    Returns:
-        points (C, 3) and owner (C,) int: the segment each point lies on.
-    """
-    axis = b - a  # (S, 3)
-    t = np.linspace(0.0, 1.0, SEGMENT_SAMPLES)
-    lengths = np.linalg.norm(axis, axis=1)
-    samples = np.where(lengths[:, None] > 0, t[None], 0.0)  # (S, T): a sphere's samples all lie at its centre
-
-    values = _along(sdf, a, axis, samples, dtype)
-    spacing = lengths / (SEGMENT_SAMPLES - 1)
-    alive = np.nonzero(values.min(axis=1) - SEGMENT_LIPSCHITZ * spacing / 2 <= reach)[0]
-    if not len(alive):
-        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-    best = np.argmin(values[alive], axis=1)
-    lo, hi = t[np.maximum(best - 1, 0)], t[np.minimum(best + 1, SEGMENT_SAMPLES - 1)]
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    a_alive, axis_alive = a[alive], axis[alive]
-    for _ in range(SEGMENT_REFINE):  # both inner points of every segment per step in one query
-        inner = np.stack([hi - ratio * (hi - lo), lo + ratio * (hi - lo)], axis=1)
-        left, right = _along(sdf, a_alive, axis_alive, inner, dtype).T
-        lower = left <= right
-        lo, hi = np.where(lower, lo, inner[:, 0]), np.where(lower, inner[:, 1], hi)
-    middle = 0.5 * (lo + hi)
-    sphere = lengths[alive] == 0
-    params = np.stack([np.zeros_like(middle), middle, np.ones_like(middle)], axis=1)  # (A, 3): an end, the minimum, the other end
-    points = a_alive[:, None] + params[..., None] * axis_alive[:, None]  # (A, 3, 3)
-    owner = np.repeat(alive, 3)
-    keep = np.repeat(~sphere, 3) | np.tile([True, False, False], len(alive))  # a sphere: its centre once
-    return points.reshape(-1, 3)[keep], owner[keep]
-
-
-def _along(sdf, a: np.ndarray, axis: np.ndarray, at: np.ndarray, dtype) -> np.ndarray:
-    """f at the points ``a + at * axis`` of each segment: a (S, 3), axis (S, 3), at (S, k) -> (S, k), one query."""
-    points = a[:, None] + at[..., None] * axis[:, None]
-    with torch.no_grad():
-        values = sdf(torch.as_tensor(points.reshape(-1, 3), dtype=dtype))
-    return torch.as_tensor(values).double().cpu().numpy().reshape(at.shape)
 
 
 def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
