@@ -84,6 +84,35 @@ def test_segment_minima_match_dense_sampling_on_a_neural_sdf():
     assert np.all(lowest[reached] <= least[reached] + 2e-5), np.max(lowest[reached] - least[reached])
 
 
+def test_a_lower_bound_drops_segments_before_the_sdf_is_asked_and_changes_no_minimum():
+    """With a lower bound of f (a proxy's, less its error: here the torus's own less 1 mm), the segments it keeps out
+    of reach are never asked of the SDF, and those that reach give the same minima as without it."""
+    torus = zoo.Torus(0.05, 0.015)
+    rng = np.random.default_rng(6)
+    centres = rng.uniform(-0.12, 0.12, size=(200, 3))
+    half = rng.normal(size=(200, 3)) * 0.01
+    a, b, reach = centres - half, centres + half, np.full(200, 0.01)
+
+    class CountingPoints(CountingSDF):
+        points = 0
+
+        def value_and_grad(self, points):
+            self.points += len(points)
+            return super().value_and_grad(points)
+
+    def lower_bound(p):
+        with torch.no_grad():
+            return torus(torch.as_tensor(p)).numpy() - 1e-3
+
+    plain, bounded = CountingPoints(torus), CountingPoints(torus)
+    every = segment_minima(plain, a, b, reach, torch.float64)
+    culled = segment_minima(bounded, a, b, reach, torch.float64, lower_bound)
+    assert bounded.points < plain.points / 2
+    for field in ("points", "owner", "values", "grads"):
+        np.testing.assert_array_equal(getattr(every, field), getattr(culled, field))
+    assert len(np.unique(culled.owner)) > 10
+
+
 def test_no_segments_give_no_minima():
     found = segment_minima(zoo.Sphere(0.05), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), torch.float64)
     assert found.points.shape == (0, 3) and found.owner.shape == (0,)

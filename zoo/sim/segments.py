@@ -35,7 +35,8 @@ class SegmentMinima:
         return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3)))
 
 
-def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: torch.dtype) -> SegmentMinima:
+def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: torch.dtype,
+                   lower_bound=None) -> SegmentMinima:
     """The points of the segments from ``a`` to ``b`` (S, 3) where ``sdf`` is least, all segments at once.
 
     Each segment is sampled at ``SEGMENT_SAMPLES`` points; a segment whose samples, less the Lipschitz bound times
@@ -43,19 +44,26 @@ def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: 
     along the axis at the lowest sample gives the side of it the minimum lies on, and ``SEGMENT_STEPS`` steps narrow
     that bracket (see the module docstring); the lowest point read, and the segment's two ends, are returned (a capsule lying on a flat
     face touches along its length: its ends hold it level). A segment of no length (a sphere) gives its one point.
-    Queries ``sdf.value_and_grad`` in ``dtype``, 1 + ``SEGMENT_STEPS`` times.
+    Queries ``sdf.value_and_grad`` in ``dtype``, 1 + ``SEGMENT_STEPS`` times. ``lower_bound``: a cheap lower bound
+    of f (numpy points (N, 3) -> (N,), an SDF's proxy less its error) that drops the segments it keeps out of reach
+    before the SDF is asked at all.
     """
-    if not len(a):
-        return SegmentMinima.empty()
     axis = b - a  # (S, 3)
     lengths = np.linalg.norm(axis, axis=1)
-    t = np.where(lengths[:, None] > 0, np.linspace(0.0, 1.0, SEGMENT_SAMPLES)[None], 0.0)  # (S, T): a sphere's at its centre
-    values, slopes, grads = _along(sdf, a, axis, t, dtype)
     spacing = lengths / (SEGMENT_SAMPLES - 1)
-    alive = np.nonzero(values.min(axis=1) - SEGMENT_LIPSCHITZ * spacing / 2 <= reach)[0]
+    t = np.where(lengths[:, None] > 0, np.linspace(0.0, 1.0, SEGMENT_SAMPLES)[None], 0.0)  # (S, T): a sphere's at its centre
+    alive = np.arange(len(a))
+    if lower_bound is not None and len(a):
+        bounds = lower_bound((a[:, None] + t[..., None] * axis[:, None]).reshape(-1, 3)).reshape(t.shape)
+        alive = _within_reach(bounds, spacing, reach)
     if not len(alive):
         return SegmentMinima.empty()
-    a, axis, t, values, slopes, grads = a[alive], axis[alive], t[alive], values[alive], slopes[alive], grads[alive]
+    values, slopes, grads = _along(sdf, a[alive], axis[alive], t[alive], dtype)
+    near = _within_reach(values, spacing[alive], reach[alive])
+    alive = alive[near]
+    if not len(alive):
+        return SegmentMinima.empty()
+    a, axis, t, values, slopes, grads = a[alive], axis[alive], t[alive], values[near], slopes[near], grads[near]
     rows = np.arange(len(alive))
     best = np.argmin(values, axis=1)
     # the bracket: from the lowest sample towards its lower side (its slope's sign), or no width at an end it falls to
@@ -81,6 +89,12 @@ def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: 
         owner=np.repeat(alive, 3)[keep],
         values=np.stack([values[:, ends[0]], low_f, values[:, ends[1]]], axis=1).reshape(-1)[keep],
         grads=np.stack([grads[:, ends[0]], low_g, grads[:, ends[1]]], axis=1).reshape(-1, 3)[keep])
+
+
+def _within_reach(values: np.ndarray, spacing: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """The segments (indices (K,)) whose samples' values (S, T) (or lower bounds), less the Lipschitz bound times half
+    their ``spacing`` (S,), come within their ``reach`` (S,): between two samples f can dip that much, no more."""
+    return np.nonzero(values.min(axis=1) - SEGMENT_LIPSCHITZ * spacing / 2 <= reach)[0]
 
 
 def _narrowed(t: np.ndarray, f: np.ndarray, d: np.ndarray) -> list[np.ndarray]:

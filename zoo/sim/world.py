@@ -739,8 +739,10 @@ class World:
             radii = np.array([pair.radius for pair, _ in pairs])
             margins = np.array([margin for _, margin in pairs])
             dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
+            proxy = self._proxy_for(sdf_body)
+            lower_bound = None if proxy is None else (lambda p, proxy=proxy: proxy.read_numpy(p)[0] - proxy.error_bound)
             minima = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
-                                    radii + margins, dtype)
+                                    radii + margins, dtype, lower_bound)
             if not len(minima.points):
                 continue
             centres, owner, values, grads = minima.points, minima.owner, minima.values, minima.grads
