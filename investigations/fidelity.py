@@ -1,6 +1,7 @@
 """How deep each contact path lets bodies sink, and where they end, on scenes no tuning of the fast path used.
 
-Each scene runs on the default path (the proxy, baked lazily: the same trajectory as baked ahead) and on the full
+Each scene runs on the default path (the proxy, baked lazily: the same trajectory as baked ahead, its reduction on
+the proxy's depths), on the proxy with ``reduce="exact"`` (the reduction on the NeuralSDF's depths) and on the full
 path (amortized from scratch, ``coherence=False``, the reference), each in its own process with one torch thread:
 
 - ``nut-torque``: the nut of ``scenes/sim-bolt-nut.toml`` turned by the Bolt-Nut scenario's torque
@@ -12,7 +13,7 @@ path (amortized from scratch, ``coherence=False``, the reference), each in its o
 
 Reports per scene and path the deepest penetration (the path's own contacts; the nut's over steps 40-60, the
 mug's over the whole run) and the median over those steps of a step's deepest, where the tracked body ends (the nut along the bolt, the mug's position), the time per
-step, and the default against the full path.
+step, and each proxy path against the full path.
 
     python -m investigations fidelity --out out/fidelity.json
 """
@@ -33,7 +34,7 @@ SCENES = {
     "mug-rack-2mm": ("mug-rack", 150, (0, 150), {"drop": 0.002}),
     "mug-drop-5cm": ("mug-rack", 200, (0, 200), {"drop": 0.05}),
 }
-PATHS = {"default": {"proxy": "lazy"}, "full": {"coherence": False}}
+PATHS = {"default": {"proxy": "lazy"}, "exact": {"proxy": "lazy", "reduce": "exact"}, "full": {"coherence": False}}
 
 ONE_RUN = """
 import json, sys, time
@@ -88,17 +89,27 @@ def main(argv=None) -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", action="append", choices=sorted(SCENES), default=[], help="default: all")
+    parser.add_argument("--path", action="append", choices=sorted(PATHS), default=[],
+                        help="default: all (a comparison needs full)")
     parser.add_argument("--out", default="out/fidelity.json")
     args = parser.parse_args(argv)
     runs, comparisons = [], []
+    paths = args.path or sorted(PATHS)
     for scene in args.scene or SCENES:
-        default, full = one_run(scene, "default"), one_run(scene, "full")
-        runs += [default, full]
-        comparisons.append(compared(default, full))
-        c = comparisons[-1]
-        print(f"{scene:>14}: deepest {default['deepest_mm']:.4f} mm (full {full['deepest_mm']:.4f}, "
-              f"{c['depth_ratio']:.2f}x; a step's median {c['median_depth_ratio']:.2f}x); ends {c['ends_apart_mm']:.4f} mm apart; "
-              f"{default['ms_per_step']:.1f} ms a step (full {full['ms_per_step']:.0f})", flush=True)
+        done = {path: one_run(scene, path) for path in paths}
+        runs += list(done.values())
+        if "full" not in done:
+            print(f"{scene:>14}: " + "; ".join(f"{p} deepest {r['deepest_mm']:.4f} mm (a step's median "
+                                               f"{r['median_deepest_mm']:.4f}), {r['ms_per_step']:.1f} ms a step"
+                                               for p, r in done.items()), flush=True)
+            continue
+        full = done["full"]
+        for path in (p for p in done if p != "full"):
+            comparisons.append({"path": path, **compared(done[path], full)})
+            c, run = comparisons[-1], done[path]
+            print(f"{scene:>14}, {path}: deepest {run['deepest_mm']:.4f} mm (full {full['deepest_mm']:.4f}, "
+                  f"{c['depth_ratio']:.2f}x; a step's median {c['median_depth_ratio']:.2f}x); ends {c['ends_apart_mm']:.4f} mm "
+                  f"apart; {run['ms_per_step']:.1f} ms a step (full {full['ms_per_step']:.0f})", flush=True)
     write_report(args.out, {"runs": runs, "compared": comparisons}, "fidelity", argv)
 
 

@@ -233,13 +233,14 @@ def test_near_deepest_per_cell_against_a_dictionary():
                 assert len(expected) > len(least) if band else len(expected) >= len(least)
 
 
-def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use():
+@pytest.mark.parametrize("band_bounds", [0, 2])
+def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use(band_bounds):
     """A deferred collider with a Thinning against the same collider without: a sphere sliding, turning and sinking
     over a plane of long thin faces (contacts that face their faces and contacts that do not, separated contacts the
     bodies close in time and ones they do not) gives, at every step, per cell of the world's grid the contacts
-    within twice the proxy's error bound of the deepest of those that zoo.sim.contacts' facing_faces and
-    closing_in_time let through, as a dictionary picks them from every contact; and the reduction a simulation
-    makes keeps the same contacts from either."""
+    within the band (none, or twice the proxy's error bound) of the deepest of those that zoo.sim.contacts'
+    facing_faces and closing_in_time let through, as a dictionary picks them from every contact; and the reduction
+    a simulation makes keeps the same contacts from either."""
     from zoo.geometry import face_normals
     from zoo.proxy_collider import Thinning
     from zoo.sim.contacts import GRAZING_COS, SEPARATED_COS, closing_in_time, facing_faces, reduce_contacts
@@ -253,8 +254,9 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
     cell, seconds = 1.37e-3, 0.003
     # the sphere's motion: its centre sinking and sliding, turning about a tilted axis; the plane at rest
     sphere_motion = (np.array([0.01, 0.02, -0.3]), np.array([0.5, -1.0, 2.0]))  # (velocity, angular velocity)
+    band = band_bounds * proxy.error_bound
     every, thinned = (ProxyCollider(sphere, mesh, proxy, margin=2e-3, method="fw", deferred=True, thin=t)
-                      for t in (None, Thinning(cell, GRAZING_COS, SEPARATED_COS)))
+                      for t in (None, Thinning(cell, GRAZING_COS, SEPARATED_COS, band=band)))
     # the mesh moved off the cells' faces (its vertices on x, y, z = 0: rounding could put a point either side)
     off = np.array([0.3, 0.2, 0.4]) * cell
     lift = pose(None, off)
@@ -263,7 +265,7 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
         sdf_pose = pose(rotation((0.3, 0.2, 1), 0.05 * step), off + (4e-4 * step, -2e-4 * step, 0.0495 - 1e-4 * step))
         origin = sdf_pose[:3, 3]
         v, w = sphere_motion
-        thinned.thin = Thinning(cell, GRAZING_COS, SEPARATED_COS, closing=(v - np.cross(w, origin), w, seconds))
+        thinned.thin = Thinning(cell, GRAZING_COS, SEPARATED_COS, closing=(v - np.cross(w, origin), w, seconds), band=band)
         a, b = every(sdf_pose, lift), thinned(sdf_pose, lift)
         points, depths, contact_normals = (x.double().numpy() for x in (a.points, a.depths, a.normals))
         face_world = normals[a.triangles.numpy()]  # the mesh is only moved
@@ -273,7 +275,6 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
         for i in np.flatnonzero(usable):
             key = tuple(np.floor(points[i] / cell).astype(np.int64).tolist())
             least[key] = min(least.get(key, np.inf), depths[i])
-        band = 2 * proxy.error_bound
         expected = [i for i in np.flatnonzero(usable)
                     if depths[i] <= least[tuple(np.floor(points[i] / cell).astype(np.int64).tolist())] + band]
         assert a.triangles[expected].tolist() == b.triangles.tolist()
@@ -286,7 +287,8 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
         compared += len(b)
         left_out += int(((depths > 0) & ~usable).sum()) * (step >= 3)
     assert compared > 100 and left_out > 0  # separated contacts the motion does not close were among them
-    assert beyond_deepest > 0  # cells where more than the proxy's deepest may be the SDF's
+    if band:
+        assert beyond_deepest > 0  # cells where more than the proxy's deepest may be the SDF's
 
 
 def test_empty_inputs_give_empty_contacts():

@@ -47,7 +47,7 @@ Frank-Wolfe's vertex instead, so that such faces settle (and are held) rather th
 
 Thinning (``thin``, with ``deferred``: what ``zoo.sim`` sets). A simulation keeps, of a pair's contacts, at most
 the deepest per cell of its reduction's grid among those its filters let through: a call then returns only those
-that may be the deepest on the SDF, within twice the proxy's error of the proxy's deepest (:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh, with more faces within the margin,
+within its ``band`` of the deepest (:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh, with more faces within the margin,
 does not cost the caller more rows. Inside, the faces lie cluster after cluster and the vertices in the order the
 faces first use them (``_face_id`` maps back to the mesh's faces): a cluster's faces are neighbours in memory.
 
@@ -91,20 +91,22 @@ PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5
 @dataclass(frozen=True)
 class Thinning:
     """How a ``deferred`` collider thins its proxy contacts before it returns them (``ProxyCollider.thin``): per cell
-    of side ``cell`` (m, the world's integer grid), the contacts a simulation can use within twice the proxy's
-    ``error_bound`` of the deepest of them (any of which may be the SDF's deepest), those that
+    of side ``cell`` (m, the world's integer grid), the contacts a simulation can use within ``band`` (m) of the
+    deepest of them (0: the deepest and its equals; twice the proxy's ``error_bound``: every one that may be the
+    SDF's deepest, for a reduction on the SDF's depths), those that
     face their faces (the normal, the proxy's, within |cos| ``touching_cos`` of the face's where the depth is at
     most 0, ``separated_cos`` beyond; a degenerate face always does) and, separated, close within the time
     (``closing`` = (u (3,), w (3,), seconds): u + w x p is the SDF body's velocity less the mesh's at the world point
     p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None: every one counts). These are
-    ``zoo.sim.contacts``' ``facing_faces`` and ``closing_in_time``, and its reduction, run on the SDF's answers at
-    these rows, keeps at most the deepest per such cell of what they let through: the rest would cost it work per
-    row for nothing (a finer mesh puts more faces within the margin, not more contacts in the manifold)."""
+    ``zoo.sim.contacts``' ``facing_faces`` and ``closing_in_time``, and its reduction keeps at most the deepest per
+    such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
+    faces within the margin, not more contacts in the manifold)."""
 
     cell: float
     touching_cos: float
     separated_cos: float
     closing: tuple | None = None
+    band: float = 0.0
 
 
 class ProxyCollider:
@@ -236,7 +238,7 @@ class ProxyCollider:
         return thinned_rows(found.values, found.bary, found.tri, found.grads, found.faces, search, self._normal, rotation, sdf_pose[:3, :3],
                             sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
                             np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds),
-                            2 * self.proxy.error_bound)
+                            float(thin.band))
 
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in

@@ -205,7 +205,8 @@ class Pair:
 class PairContacts:
     """One pair's contacts at a step (world frame) and the rows of them MuJoCo can use: ``points`` (K, 3),
     ``depths`` (K,), ``normals`` (K, 3) (the SDF's, as :func:`as_numpy` gives them), ``faces_world`` (K, 3) their
-    mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows kept so far."""
+    mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows kept so far, ``reduced`` whether
+    those are already the reduction's."""
 
     pair: Pair
     contacts: object  # zoo.Contacts
@@ -214,6 +215,7 @@ class PairContacts:
     normals: np.ndarray
     faces_world: np.ndarray
     usable: np.ndarray
+    reduced: bool = False
 
 
 @dataclass
@@ -245,8 +247,15 @@ def proxy_choice(value, name: str = "proxy") -> str | bool:
     raise InputError(f"{name} must be True, False or one of {PROXY_CHOICES}, got {value!r}")
 
 
+def reduce_choice(value) -> bool | str:
+    """``attach``'s ``reduce`` as True, False or "exact"."""
+    if value is True or value is False or value == "exact":
+        return value
+    raise InputError(f'reduce must be True, False or "exact", got {value!r}')
+
+
 def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e-3, coherence: bool = True,
-           reduce: bool = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
+           reduce: bool | str = True, refine: bool = True, contype: int = 1, conaffinity: int = 1,
            surfaces: dict | None = None, include_geoms=(), tolerance: float = TESSELLATION_TOLERANCE,
            proxy: bool | str | dict = True) -> World:
     """sdfzoo's contacts for the SDF bodies of a user's ``mujoco.MjModel`` (see the module docstring).
@@ -259,7 +268,10 @@ def attach(model, bodies: dict, *, method: str = "amortized", margin: float = 1e
         margin: m; contacts are detected this far before touching (at least each pair's MuJoCo margin).
         coherence: carry each pair's bounds and answers from step to step (``zoo.CoherentCollider``); False
             collides every pair from scratch with ``zoo.collide``.
-        reduce: reduce contacts to a manifold per patch (False: every usable contact, for comparison).
+        reduce: reduce contacts to a manifold per patch (False: every usable contact, for comparison). Where a proxy
+            searches, True picks the manifold on the proxy's depths and the NeuralSDF answers the rows kept; "exact"
+            has the NeuralSDF answer every cell's candidates (those within twice the proxy's error of the cell's
+            deepest) and picks on its own depths, at the cost of those answers (docs/proxy.md, Fidelity).
         refine: split triangles larger than a quarter of the SDF, and remove the vertices the meshes' flat parts do
             not need, once (``zoo.sim.flat_regions``; False: the meshes as the model has them).
         contype, conaffinity: the SDF's collision bits, as a geom's (MuJoCo's defaults).
@@ -310,7 +322,7 @@ class World:
         self.model = model
         self.method = method
         self.margin = non_negative_float(margin, "margin")
-        self.coherence, self.reduce, self.refine = bool(coherence), bool(reduce), bool(refine)
+        self.coherence, self.reduce, self.refine = bool(coherence), reduce_choice(reduce), bool(refine)
         self.proxy = dict(proxy) if isinstance(proxy, dict) else proxy_choice(proxy, "proxy")
         if isinstance(self.proxy, dict):
             self.proxy = {name: given if hasattr(given, "read") else proxy_choice(given, f"proxy[{name!r}]")
@@ -414,7 +426,9 @@ class World:
             if self.reduce and pair.collider.deferred:  # only what the reduction can keep comes back
                 from ..proxy_collider import Thinning
 
-                pair.collider.thin = Thinning(MERGE_CELL * self.merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS)
+                band = 2 * pair.collider.proxy.error_bound if self.reduce == "exact" else 0.0
+                pair.collider.thin = Thinning(MERGE_CELL * self.merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS,
+                                              band=band)
             pair.refined = RefinedMesh(vertices, faces, cover, face_normals(vertices[faces]))
         return pair
 
@@ -570,9 +584,9 @@ class World:
             usable = self._usable(pair, data, contacts, faces_world, velocities)
             if usable is not None:
                 stats.raw_contacts += len(usable.depths)
-                found.append(usable)
+                found.append(self._reduced_on_proxy(usable))
         for found_pair in self.exact_answers(found):
-            keep = self._reduced(found_pair)
+            keep = found_pair.usable if found_pair.reduced else self._reduced(found_pair)
             if not len(keep):
                 continue
             r = contact_rows((found_pair.points, found_pair.depths, found_pair.normals), keep,
@@ -650,9 +664,16 @@ class World:
             points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
         return PairContacts(pair, contacts, points, depths, normals, faces_world, np.nonzero(usable)[0])
 
+    def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
+        """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
+        rows kept. Other pairs, and every pair with ``reduce="exact"``, as they are (reduced on the SDF's depths)."""
+        if self.reduce is not True or not getattr(found.pair.collider, "deferred", False):
+            return found
+        return replace(found, usable=self._reduced(found), reduced=True)
+
     def _reduced(self, found: PairContacts) -> np.ndarray:
         """The usable rows (R,) the reduction keeps (all of them with ``reduce=False``): a manifold per patch, on
-        the SDF's own depths (a proxy's pair is reduced after the SDF answered its rows)."""
+        the depths ``found`` holds."""
         keep = found.usable
         if not self.reduce or not len(keep):
             return keep
@@ -687,7 +708,8 @@ class World:
             answered = np.isin(np.asarray(asked.contacts.triangles)[asked.usable], np.asarray(contacts.triangles))
             faces_world = asked.faces_world[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
-            found[i] = PairContacts(asked.pair, contacts, *as_numpy(contacts), faces_world, np.arange(len(contacts)))
+            found[i] = PairContacts(asked.pair, contacts, *as_numpy(contacts), faces_world, np.arange(len(contacts)),
+                                    asked.reduced)
         return found
 
     def _collide_refining_near(self, pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float):
