@@ -483,7 +483,8 @@ def run(name: str, seconds: float | None = None, video: Path | None = None, prog
     log = sim.log
     result.update(step_metrics(np.array([r.step_s for r in log]), np.array([r.contacts for r in log]),
                                np.array([r.max_penetration for r in log]), np.array([r.collide_s for r in log])))
-    result.update({"scene": name, "method": sim.method + ("+coherence" if sim.coherence else ""),
+    path = ("+proxy" if sim.proxy else "+coherence") if sim.coherence else ""
+    result.update({"scene": name, "method": sim.method + path,
                    "seconds": sim.time, "warnings": sim.warnings[:10]})
     return result
 

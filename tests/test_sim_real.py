@@ -85,33 +85,38 @@ def test_sim_bench_runs_each_method_in_its_own_process_with_the_threads_asked(tm
     assert torch.get_num_threads() == before  # the runs' setting stays in their processes
 
 
+def mug_rack_steps(thin: bool, reduce=True) -> list[dict]:
+    """60 steps of scenes/mug-rack.toml on the proxy (its colliders thinned, or not): per step the mug's position,
+    the contacts' points and depths, and the rows the colliders returned."""
+    import zoo.sim
+
+    sim = zoo.sim.load_scene(ROOT / "scenes" / "mug-rack.toml", reduce=reduce)
+    sim.build()
+    pairs = [p for p in sim.world.pairs if getattr(p.collider, "proxy_collider", None) is not None]
+    assert pairs and all(p.collider.proxy_collider.thin is not None for p in pairs)
+    if not thin:
+        for p in pairs:
+            p.collider.proxy_collider.thin = None
+    steps = []
+    for _ in range(60):
+        sim.step()
+        steps.append({"where": sim.pose("sdf")[:3, 3].copy(), "points": sim.contacts.points.double().numpy(),
+                      "depths": sim.contacts.depths.double().numpy(), "rows": sim.log[-1].raw_contacts})
+    return steps
+
+
 @pytest.mark.slow  # 2 x 60 steps of the mug on the rack on the proxy: about 10 s
 @pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
 def test_thinned_proxy_contacts_give_the_contacts_of_all_of_them(monkeypatch):
     """A simulation's proxy colliders return only the contacts its reduction can keep (zoo.proxy_collider.Thinning):
     the mug landing on the real rack and sliding (scenes/mug-rack.toml) gives, step after step, the same contacts to
     MuJoCo as with every proxy contact returned, from far fewer rows."""
-    import zoo.sim
-
     monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
-    runs = {}
-    for thin in (True, False):
-        sim = zoo.sim.load_scene(ROOT / "scenes" / "mug-rack.toml")
-        sim.build()
-        pairs = [p for p in sim.world.pairs if getattr(p.collider, "proxy_collider", None) is not None]
-        assert pairs and all(p.collider.proxy_collider.thin is not None for p in pairs)
-        if not thin:
-            for p in pairs:
-                p.collider.proxy_collider.thin = None
-        steps = []
-        for _ in range(60):
-            sim.step()
-            steps.append((sim.contacts.points.double().numpy(), sim.contacts.depths.double().numpy(), sim.log[-1].raw_contacts))
-        runs[thin] = steps
-    for (points, depths, _), (all_points, all_depths, _) in zip(runs[True], runs[False]):
-        np.testing.assert_array_equal(points, all_points)
-        np.testing.assert_array_equal(depths, all_depths)
-    assert sum(s[2] for s in runs[True]) < 0.2 * sum(s[2] for s in runs[False])
+    thinned, every = mug_rack_steps(thin=True), mug_rack_steps(thin=False)
+    for step, all_of_them in zip(thinned, every):
+        np.testing.assert_array_equal(step["points"], all_of_them["points"])
+        np.testing.assert_array_equal(step["depths"], all_of_them["depths"])
+    assert sum(s["rows"] for s in thinned) < 0.2 * sum(s["rows"] for s in every)
 
 
 @pytest.mark.slow  # 2 x 60 steps of the mug on the rack on the proxy: about 15 s
@@ -119,33 +124,18 @@ def test_thinned_proxy_contacts_give_the_contacts_of_all_of_them(monkeypatch):
 def test_thinned_proxy_contacts_reduced_exactly_give_the_contacts_of_all_of_them(monkeypatch):
     """With reduce="exact" (the reduction on the NeuralSDF's depths), the proxy colliders return per cell the contacts
     within twice the proxy's error of the deepest: the mug landing on the real rack and sliding gives MuJoCo, step
-    after step, the contacts it gets with every proxy contact returned, from far fewer rows. Not to the bit: the NeuralSDF's polishing step
-    can move a contact into the next cell of the reduction's grid, where the thinning (on the proxy's points) did
-    not keep it, and the float32 network's last bit depends on how many rows a call asks (investigations/bake_calls).
-    So: the deepest contact of every step within 2 um, the same number of contacts at 90% of the steps at least,
-    and the mug's path within 0.1 mm."""
-    import zoo.sim
-
+    after step, the contacts it gets with every proxy contact returned, from far fewer rows. Not to the bit: the
+    NeuralSDF's polishing step can move a contact into the next cell of the reduction's grid, where the thinning
+    (on the proxy's points) did not keep it, and the float32 network's last bit depends on how many rows a call
+    asks (investigations/bake_calls). So: the deepest contact of every step within 2 um, the same number of
+    contacts at 90% of the steps at least, and the mug's path within 0.1 mm."""
     monkeypatch.setenv("ZOO_DATA", str(zoo_data()))
-    runs = {}
-    for thin in (True, False):
-        sim = zoo.sim.load_scene(ROOT / "scenes" / "mug-rack.toml", reduce="exact")
-        sim.build()
-        pairs = [p for p in sim.world.pairs if getattr(p.collider, "proxy_collider", None) is not None]
-        assert pairs and all(p.collider.proxy_collider.thin is not None for p in pairs)
-        if not thin:
-            for p in pairs:
-                p.collider.proxy_collider.thin = None
-        steps = []
-        for _ in range(60):
-            sim.step()
-            steps.append((sim.pose("sdf")[:3, 3].copy(), sim.contacts.depths.double().numpy(), sim.log[-1].raw_contacts))
-        runs[thin] = steps
+    thinned, every = mug_rack_steps(thin=True, reduce="exact"), mug_rack_steps(thin=False, reduce="exact")
     same_count = 0
-    for (where, depths, _), (all_where, all_depths, _) in zip(runs[True], runs[False]):
-        assert len(depths) and abs(depths.min() - all_depths.min()) < 2e-6
-        assert np.linalg.norm(where - all_where) < 1e-4
-        same_count += len(depths) == len(all_depths)
+    for step, all_of_them in zip(thinned, every):
+        assert len(step["depths"]) and abs(step["depths"].min() - all_of_them["depths"].min()) < 2e-6
+        assert np.linalg.norm(step["where"] - all_of_them["where"]) < 1e-4
+        same_count += len(step["depths"]) == len(all_of_them["depths"])
     assert same_count >= 0.9 * 60
     # the thinning keeps, per cell, the rows within twice the proxy's error of its deepest (any may be the SDF's)
-    assert sum(s[2] for s in runs[True]) < 0.3 * sum(s[2] for s in runs[False])
+    assert sum(s["rows"] for s in thinned) < 0.3 * sum(s["rows"] for s in every)

@@ -78,7 +78,8 @@ class Simulation:
             elliptic and 10.
         coherence: carry each pair's bounds and answers from step to step (:class:`zoo.CoherentCollider`);
             False collides every pair from scratch with ``zoo.collide``.
-        reduce: reduce contacts to a manifold per patch (False: every contact, for comparison).
+        reduce: reduce contacts to a manifold per patch (False: every contact, for comparison; "exact": on the
+            NeuralSDF's depths where a proxy searches, see ``zoo.sim.attach``).
         refine: split mesh triangles larger than a quarter of the SDF, and remove the vertices a mesh's flat parts
             do not need, once, at build (``zoo.sim.flat_regions``; False: the mesh as given).
         proxy: with ``coherence`` (the default), the model shapes' mesh pairs cull and search on a narrow-band proxy,
@@ -108,7 +109,7 @@ class Simulation:
     def __init__(self, dt: float | None = None, gravity=None, method: str = "amortized", margin: float = 1e-3,
                  friction: float | None = None, solref=None, solimp=None,
                  integrator: str | None = None, cone: str | None = None, impratio: float | None = None,
-                 coherence: bool = True, reduce: bool = True, refine: bool = True, mjcf=None, proxy: bool | str | dict = True):
+                 coherence: bool = True, reduce: bool | str = True, refine: bool = True, mjcf=None, proxy: bool | str | dict = True):
         if dt is not None and not (dt > 0 and math.isfinite(dt)):
             raise InputError(f"dt must be positive, got {dt}")
         if integrator is not None and integrator.lower() not in INTEGRATORS:
