@@ -47,8 +47,8 @@ Frank-Wolfe's vertex instead, so that such faces settle (and are held) rather th
 
 Thinning (``thin``, with ``deferred``: what ``zoo.sim`` sets). A simulation keeps, of a pair's contacts, at most
 the deepest per cell of its reduction's grid among those its filters let through: a call then returns only those
-within its ``band`` of the deepest (:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh, with more faces within the margin,
-does not cost the caller more rows. Inside, the faces lie cluster after cluster and the vertices in the order the
+within its ``band`` of the deepest (:class:`Thinning`, :func:`zoo.proxy_kernel.thinned_rows`), so a finer mesh,
+with more faces within the margin, does not cost the caller more rows. Inside, the faces lie cluster after cluster and the vertices in the order the
 faces first use them (``_face_id`` maps back to the mesh's faces): a cluster's faces are neighbours in memory.
 
 Why clusters and not a carried bound per vertex (what :class:`zoo.CoherentCollider` does on the SDF itself): on
@@ -235,8 +235,8 @@ class ProxyCollider:
 
         thin = self.thin
         shift, turn, seconds = (np.zeros(3), np.zeros(3), -1.0) if thin.closing is None else thin.closing
-        return thinned_rows(found.values, found.bary, found.tri, found.grads, found.faces, search, self._normal, rotation, sdf_pose[:3, :3],
-                            sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
+        return thinned_rows(found.values, found.bary, found.tri, found.grads, found.faces, search, self._normal,
+                            rotation, sdf_pose[:3, :3], sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
                             np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds),
                             float(thin.band))
 
@@ -541,8 +541,8 @@ class ProxyCollider:
 
 def exact_contacts_together(requests) -> list[Contacts]:
     """:meth:`ProxyCollider.exact_contacts` for several colliders at once (``requests``: (collider, rows (R,)) pairs,
-    each collider a ProxyCollider or a CoherentCollider on one, called ``deferred`` first): the colliders that answer on the same SDF and proxy, in the same way,
-    ask the SDF together, one query for all their faces (and one for all their polishing steps), as a step's pairs
+    each collider a ProxyCollider or a CoherentCollider on one, called ``deferred`` first): the colliders that answer
+    on the same SDF and proxy, in the same way, ask the SDF together, one query for all their faces (and one for all their polishing steps), as a step's pairs
     on one body do. The contacts of each, in the order given; each collider's stats count its own faces, the
     first of a group the group's queries."""
     requests = [(getattr(collider, "proxy_collider", collider), rows) for collider, rows in requests]  # a CoherentCollider's

@@ -405,7 +405,7 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
                  touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band):
     """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
     contacts (the answers at most ``search``), in one pass: per cell, those a simulation can use within ``band`` of
-    the deepest of them (the proxy's depths are known to within its error: any of these may be the SDF's deepest).
+    the deepest of them.
 
     Args:
         values (N,), bary (N, 3), tri (N, 3, 3), grads (N, 3), faces (N,): the answers (the SDF's frame).
@@ -413,7 +413,7 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
             mesh's in the SDF's frame. sdf_rotation (3, 3), sdf_shift (3,): the SDF's pose in the world.
         cell, touching_cos, separated_cos: the ``Thinning``'s; closing_shift (3,), closing_turn (3,),
             closing_seconds: its ``closing`` (u, w, seconds; seconds < 0: none).
-        band: m, twice the proxy's error bound.
+        band: m, the ``Thinning``'s (0: the deepest and its equals).
     """
     n = values.shape[0]
     cells = np.empty((n, 3), dtype=np.int64)
