@@ -52,8 +52,10 @@ def faces_within_margin(sim, sdf_name: str, mesh_name: str):
     the SDF at every step instead (no fixed mesh)."""
     import zoo
 
+    from zoo.sim.pairs import MeshPair
+
     pair = sim.world.pair(sdf_name, mesh_name)
-    if pair.refined is None:
+    if not isinstance(pair, MeshPair):
         return None
     mesh = (torch.as_tensor(pair.refined.vertices, dtype=torch.float32), torch.as_tensor(pair.refined.faces))
     return zoo.collide(sim.bodies[sdf_name].sdf, mesh, sdf_pose=torch.from_numpy(sim.pose(sdf_name)),

@@ -30,14 +30,15 @@ def pair_rows(name: str, refine: int) -> list[dict]:
     from investigations.proxy import start_refined
     from zoo.sim.contacts import refined_pieces
     from zoo.sim.flat_regions import merge_flat_regions
+    from zoo.sim.pairs import MeshPair
 
     _, sim, _, _ = start_refined(name, refine)
     rows = []
     for pair in sim.world.pairs:
-        if pair.refined is None:
+        if not isinstance(pair, MeshPair):  # no mesh refined once
             continue
         start = time.perf_counter()
-        merged, _ = merge_flat_regions(pair.vertices, pair.faces, sim.world.flat_width(pair.sdf_body),
+        merged, _ = merge_flat_regions(pair.vertices, pair.faces, pair.sdf_body.flat_width,
                                        refined_pieces(pair.sdf_body.max_edge))
         seconds = time.perf_counter() - start
         area = _area(pair.vertices, pair.faces)

@@ -275,10 +275,10 @@ def kernels(scenario: str, steps: int | None) -> dict:
     collider took (the compiled one loads its kernel then)."""
     from sdfzoo.benches.sim_scenarios import advance, start
     from zoo.proxy_collider import KERNELS, ProxyCollider
-    from zoo.sim.world import body_pose
+    from zoo.sim.geoms import body_pose
 
     spec, sim, extra = start(scenario)
-    pair = next(p for p in sim.world.pairs if getattr(p.collider, "proxy", None) is not None)
+    pair = next(p for p in sim.world.pairs if getattr(getattr(p, "collider", None), "proxy", None) is not None)
     source = pair.collider.proxy_collider
     made = {}
     for kernel in KERNELS:

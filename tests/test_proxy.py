@@ -114,7 +114,7 @@ def test_out_of_band_values_are_lower_bounds(sphere_proxy):
 def test_outside_the_region_the_nearest_brick_bounds_a_round_shape_far_from_its_box():
     """Past the corners of a sphere's box the surface is far: the nearest brick's bound says so (not only the band
     plus the distance to the box), in the numpy read and in the compiled one, and a lazy proxy bakes no brick for it."""
-    from zoo.proxy_kernel import MISSING, read
+    from zoo.proxy_kernel import COUNTS, MISSING, read
 
     sphere = zoo.Sphere(0.05)
     proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3, lazy=True)
@@ -127,8 +127,8 @@ def test_outside_the_region_the_nearest_brick_bounds_a_round_shape_far_from_its_
     assert bool((status == ABOVE).all()) and bool((values <= truth + 1e-9).all())
     assert bool((values > proxy.band + gap + 5e-3).all())  # well above what the box alone says
     assert proxy.n_baked == baked  # the coarse values alone, no brick baked
-    missing, counts = np.zeros(4, dtype=np.int64), np.zeros(16, dtype=np.int64)
-    compiled = [read(*p, proxy.grid(), missing, counts) for p in points.numpy()]
+    missing, counts = np.zeros(4, dtype=np.int64), np.zeros(1, dtype=COUNTS)
+    compiled = [read(*p, proxy.grid(), missing, counts[0]) for p in points.numpy()]
     assert all(c[4] != MISSING for c in compiled)
     assert np.allclose([c[0] for c in compiled], values.numpy(), atol=1e-9)
 

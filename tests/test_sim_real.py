@@ -92,7 +92,7 @@ def mug_rack_steps(thin: bool, reduce=True) -> list[dict]:
 
     sim = zoo.sim.load_scene(ROOT / "scenes" / "mug-rack.toml", reduce=reduce)
     sim.build()
-    pairs = [p for p in sim.world.pairs if getattr(p.collider, "proxy_collider", None) is not None]
+    pairs = [p for p in sim.world.pairs if getattr(getattr(p, "collider", None), "proxy_collider", None) is not None]
     assert pairs and all(p.collider.proxy_collider.thin is not None for p in pairs)
     if not thin:
         for p in pairs:

@@ -70,6 +70,7 @@ import warnings
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -130,6 +131,25 @@ class _ReadConstants:
         self.lo, self.hi = proxy._lo_np.astype(dtype), proxy._hi_np.astype(dtype)
         self.inv_h, self.band, self.lipschitz = t(1 / proxy.spacing), t(proxy.band), t(proxy.lipschitz)
         self.tiny = np.finfo(dtype).tiny
+
+
+class ProxyGrid(NamedTuple):
+    """A proxy's arrays as a compiled read takes them (:meth:`ProxySDF.grid`, :func:`zoo.proxy_kernel.read`); the
+    arrays are described in :class:`ProxySDF`'s docstring."""
+
+    lo: np.ndarray  # (3,) the baked region's low corner
+    hi: np.ndarray  # (3,) its high corner
+    inv_h: float  # 1 / spacing
+    band: float
+    lipschitz: float
+    brick_of: np.ndarray  # (B,) int64 each brick's row of the baked ones (NOT_READY, or < 0: none)
+    nodes: np.ndarray  # (R * 729,) the baked bricks' node values
+    status: np.ndarray  # (R * 512,) int8 their cells' status
+    coarse_value: np.ndarray  # (B,) each brick centre's value
+    coarse_grad: np.ndarray  # (B, 3) its coarse gradient
+    n_bricks: np.ndarray  # (3,) int64 bricks along each axis
+    brick_side: float  # m
+    first_centre: np.ndarray  # (3,) brick (0, 0, 0)'s centre
 
 
 class ProxySDF:
@@ -333,13 +353,12 @@ class ProxySDF:
 
     _read = read_numpy  # its earlier name, which callers may still use
 
-    def grid(self) -> tuple:
-        """What a compiled read needs (:func:`zoo.proxy_kernel.read`), the arrays as they are now (baking may replace
-        them): (lo (3,), hi (3,), 1 / spacing, band, lipschitz, brick_of, nodes, status, coarse_value, coarse_grad
-        (B, 3), n_bricks (3,) int64, a brick's side, brick (0, 0, 0)'s centre (3,)); the arrays as in the class doc."""
-        return (self._lo_np, self._hi_np, 1 / self.spacing, self.band, self.lipschitz, self._brick_of_np, self._nodes_np,
-                self._status_np, self._coarse_value_np, self._coarse_grad_np, self._nb, self._brick_side,
-                self._first_centre_np)
+    def grid(self) -> ProxyGrid:
+        """What a compiled read needs (:func:`zoo.proxy_kernel.read`): the arrays as they are now (baking may replace
+        them)."""
+        return ProxyGrid(self._lo_np, self._hi_np, 1 / self.spacing, self.band, self.lipschitz, self._brick_of_np,
+                         self._nodes_np, self._status_np, self._coarse_value_np, self._coarse_grad_np, self._nb,
+                         self._brick_side, self._first_centre_np)
 
     def make_ready(self, bricks, coarse=()) -> int:
         """Make the bricks ``bricks`` (K,) (flat indices) ready where they are not yet (a lazy proxy), as a read landing

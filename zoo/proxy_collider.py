@@ -169,7 +169,9 @@ class ProxyCollider:
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()
         if kernel == "numba":  # compiled (or loaded from numba's cache) now, not in the first step
-            self._compiled_search(np.eye(3), np.zeros(3), self.margin, self.margin, CoherenceStats(), n_clusters=0)
+            identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
+            self._compiled_search(identity[:3, :3], identity[:3, 3], self.margin, self.margin, CoherenceStats(),
+                                  n_clusters=0)
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
@@ -178,7 +180,8 @@ class ProxyCollider:
         self._answers = _SDFAnswers.empty(n)  # the SDF's last answer per face
         self._pending = None  # the last call's proxy contacts (_ProxyContacts), for the SDF to answer
         self._held = None  # the last full search's answers within its net (_Held), carried while the motion is small
-        self._scratch = None  # the compiled passes' buffers (_KernelScratch), made at their first call
+        self._buffers = None  # the compiled passes' buffers (zoo.proxy_kernel.KernelBuffers), made at their first call
+        self._stamp = 0  # the compiled passes' last call (KernelBuffers.vertex_stamp)
         self._motion = _HeldBounds.empty(len(self._clusters), n)  # how far each cluster moved, and the faces' bounds
         self.last_candidates = torch.zeros(0, dtype=torch.int64)
 
@@ -274,10 +277,12 @@ class ProxyCollider:
         proxy's bricks the reads met not ready are made ready and the call made again, until none is met."""
         from . import proxy_kernel as kernel
 
-        if self._scratch is None:
-            self._scratch = _KernelScratch(len(self._v), len(self._f))
-        k, held = self._scratch, self._motion
-        lip = self.proxy.lipschitz
+        if self._buffers is None:
+            self._kernel_mesh = kernel.KernelMesh(self._f, self._v, self._reach, self._ball, self._clusters,
+                                                  self._cluster_centre, self._cluster_radius)
+            self._buffers = kernel.kernel_buffers(len(self._v), len(self._f))
+        out, held = self._buffers, self._motion
+        memory = kernel.FaceMemory(self._last_bary, held.cluster_motion, held.cluster_key, held.face_key)
         # a pass that met bricks not ready is made again from the same held bounds: the keys it wrote are dropped,
         # so that the answer is the one a proxy with every brick ready gives (not one that depends on the cache)
         kept_keys = None if self.proxy.complete else (held.cluster_key.copy(), held.face_key.copy())
@@ -285,30 +290,27 @@ class ProxyCollider:
         while True:
             if retry:
                 held.cluster_key[:], held.face_key[:] = kept_keys
-            k.stamp += 1
-            k.counts[:] = 0
-            kernel.search_faces(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
-                                WARM_SEARCH_STEPS, lip, self._clusters[:n_clusters], self._cluster_centre, self._cluster_radius,
-                                self._lo, self._hi, self._f, self._v, self._reach, self._ball, self._last_bary,
-                                PATTERN[3:], self.proxy.grid(), self.hold, held.cluster_motion, held.cluster_key,
-                                held.face_key, k.vertex_stamp, k.stamp, k.vertex_local, k.vertex_answer,
-                                k.missing, k.counts, k.face, k.tri, k.bary, k.value, k.grad, k.status, k.searched_face,
-                                k.searched_bary)
-            missed = int(k.counts[kernel.N_MISSING])
+            self._stamp += 1
+            out.counts[:] = 0
+            call = kernel.SearchCall(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
+                                     WARM_SEARCH_STEPS, len(self._clusters) if n_clusters is None else n_clusters,
+                                     self._lo, self._hi, PATTERN[3:], self.hold, self._stamp)
+            kernel.search_faces(call, self._kernel_mesh, self.proxy.grid(), memory, out)
+            counts = out.counts[0]
+            missed = int(counts["missing"])
             if not missed:
                 break
-            missing = k.missing[:min(missed, k.missing.size)]  # then the reads there answer
+            missing = out.missing[:min(missed, out.missing.size)]  # then the reads there answer
             self.proxy.make_ready(missing[missing >= 0], coarse=-1 - missing[missing < 0])
             retry = True
-        c = k.counts
-        stats.faces_near, stats.faces_skipped = int(c[kernel.FACES_NEAR]), int(c[kernel.FACES_SKIPPED])
-        stats.candidates, stats.warm, stats.cold = int(c[kernel.CANDIDATES]), int(c[kernel.WARM]), int(c[kernel.COLD])
-        stats.screened, stats.cell_queries = int(c[kernel.SCREENED]), stats.cell_queries + int(c[kernel.READS])
-        searched = int(c[kernel.N_SEARCHED])
-        self._last_bary[k.searched_face[:searched]] = k.searched_bary[:searched]
-        n = int(c[kernel.N_OUT])
-        return ProxyAnswers(k.face[:n].copy(), k.tri[:n].copy(), k.bary[:n].copy(), k.value[:n].copy(), k.grad[:n].copy(),
-                            k.status[:n].copy())
+        stats.faces_near, stats.faces_skipped = int(counts["faces_near"]), int(counts["faces_skipped"])
+        stats.candidates, stats.warm, stats.cold = int(counts["candidates"]), int(counts["warm"]), int(counts["cold"])
+        stats.screened, stats.cell_queries = int(counts["screened"]), stats.cell_queries + int(counts["reads"])
+        searched = int(counts["searched"])
+        self._last_bary[out.searched_face[:searched]] = out.searched_bary[:searched]
+        n = int(counts["out"])
+        return ProxyAnswers(out.face[:n].copy(), out.tri[:n].copy(), out.bary[:n].copy(), out.value[:n].copy(),
+                            out.grad[:n].copy(), out.status[:n].copy())
 
     def _numpy_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats) -> ProxyAnswers:
         """The faces whose proxy minimum is at most ``net``, with the proxy at their minima (see the module
@@ -644,22 +646,6 @@ class _SDFAnswers:
 
     def store(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
         self.bary[faces], self.value[faces], self.grad[faces], self.at[faces] = bary, values, grads, tri
-
-
-class _KernelScratch:
-    """The buffers :func:`zoo.proxy_kernel.search_faces` writes into, sized for the mesh (V vertices, F faces) once."""
-
-    def __init__(self, n_vertices: int, n_faces: int):
-        from .proxy_kernel import N_COUNTS
-
-        self.stamp = 0
-        self.vertex_stamp = np.zeros(n_vertices, dtype=np.int64)
-        self.vertex_local, self.vertex_answer = np.zeros((n_vertices, 3)), np.zeros((n_vertices, 5))
-        self.missing = np.zeros(4096, dtype=np.int64)  # bricks not ready that one call can report
-        self.counts = np.zeros(N_COUNTS, dtype=np.int64)
-        self.face, self.tri, self.bary = np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3, 3)), np.zeros((n_faces, 3))
-        self.value, self.grad, self.status = np.zeros(n_faces), np.zeros((n_faces, 3)), np.zeros(n_faces, dtype=np.int8)
-        self.searched_face, self.searched_bary = np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3))
 
 
 @dataclass

@@ -17,6 +17,7 @@ numba is imported here only: ``import zoo`` does not load it.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -31,18 +32,89 @@ MISSING = 2  # a read's status where its brick is not ready (a lazy proxy): the 
 BOUNDARY = 1e-9  # as zoo.proxy_collider.BOUNDARY
 TINY = np.finfo(np.float64).tiny
 
-# counts[] slots the kernel fills (zoo.collider.CoherenceStats names, and the kernel's own)
-N_OUT, FACES_NEAR, FACES_SKIPPED, CANDIDATES, WARM, COLD, SCREENED, READS, N_MISSING, N_SEARCHED = range(10)
-N_COUNTS = 10
+# What a call counts (one record; the first five are zoo.collider.CoherenceStats's names)
+COUNTS = np.dtype([("faces_near", np.int64), ("faces_skipped", np.int64), ("candidates", np.int64), ("warm", np.int64),
+                   ("cold", np.int64), ("screened", np.int64), ("reads", np.int64), ("missing", np.int64),
+                   ("searched", np.int64), ("out", np.int64)])
+
+
+class KernelMesh(NamedTuple):
+    """A collider's mesh as :func:`search_faces` reads it, in the mesh's frame, made once."""
+
+    faces: np.ndarray  # (F, 3) int64
+    vertices: np.ndarray  # (V, 3)
+    reach: np.ndarray  # (F, 3) zoo.bounds.triangle_reach: how far each corner reaches over the face
+    ball: np.ndarray  # (F,) the radius about the lowest corner that holds the face
+    clusters: np.ndarray  # (C, K) int64 faces of each cluster (-1 padding)
+    cluster_centre: np.ndarray  # (C, 3)
+    cluster_radius: np.ndarray  # (C,)
+
+
+class SearchCall(NamedTuple):
+    """One call of :func:`search_faces`: the pose and what the search stops at."""
+
+    rotation: np.ndarray  # (3, 3) the mesh's rotation in the SDF's frame
+    shift: np.ndarray  # (3,) its translation
+    search: float  # m: the search margin (a face whose proxy minimum may be at most this is searched)
+    net: float  # m: a face whose answer is at most this is written out
+    stop: float  # the Frank-Wolfe gap below which a search stops
+    search_steps: int  # the descents a cold face takes at most
+    warm_steps: int  # and a warm one
+    n_clusters: int  # the first clusters searched (the rest passed over)
+    bounds_lo: np.ndarray  # (3,) the SDF's bounds
+    bounds_hi: np.ndarray  # (3,)
+    pattern: np.ndarray  # (P, 3) a cold face's starting barycentrics
+    hold: bool  # whether faces are passed over on their held bounds (FaceMemory)
+    stamp: int  # this call's stamp (KernelBuffers.vertex_stamp)
+
+
+class FaceMemory(NamedTuple):
+    """What crosses calls: each face's last answer, the warm start, and the bounds that pass faces over
+    (``hold``). A face (a cluster) whose key, less L times its cluster's motion now, exceeds the search margin
+    cannot hold a contact and is passed over with no read; :func:`search_faces` updates the keys."""
+
+    last_bary: np.ndarray  # (F, 3) each face's last answer (NaN: none)
+    cluster_motion: np.ndarray  # (C,) m: how far each cluster's points have moved relative to the SDF, in all
+    cluster_key: np.ndarray  # (C,) the least of its faces' keys
+    face_key: np.ndarray  # (F,) its bound on the proxy's minimum when last answered, plus L times its cluster's
+    #                       motion then (-inf: none)
+
+
+class KernelBuffers(NamedTuple):
+    """What :func:`search_faces` writes, sized for the mesh once (:func:`kernel_buffers`)."""
+
+    vertex_stamp: np.ndarray  # (V,) int64: a vertex whose stamp is the call's was read this call,
+    vertex_local: np.ndarray  # (V, 3) its place in the SDF's frame
+    vertex_answer: np.ndarray  # (V, 5) and its read (value, gradient, status)
+    missing: np.ndarray  # (M,) int64 bricks not ready that reads met (-1 - b: brick b's coarse value alone)
+    counts: np.ndarray  # (1,) COUNTS, zeroed by the caller
+    face: np.ndarray  # (F,) int64 the faces answered at most ``net`` (counts.out rows),
+    tri: np.ndarray  # (F, 3, 3) their corners, SDF frame
+    bary: np.ndarray  # (F, 3) their minimisers
+    value: np.ndarray  # (F,) the proxy there
+    grad: np.ndarray  # (F, 3)
+    status: np.ndarray  # (F,) int8
+    searched_face: np.ndarray  # (F,) int64 the faces searched inside (counts.searched rows)
+    searched_bary: np.ndarray  # (F, 3) and their answers: the next call's warm starts
+
+
+def kernel_buffers(n_vertices: int, n_faces: int, n_missing: int = 4096) -> KernelBuffers:
+    """Empty :class:`KernelBuffers` for a mesh of ``n_vertices`` and ``n_faces``."""
+    return KernelBuffers(np.zeros(n_vertices, dtype=np.int64), np.zeros((n_vertices, 3)), np.zeros((n_vertices, 5)),
+                         np.zeros(n_missing, dtype=np.int64), np.zeros(1, dtype=COUNTS),
+                         np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3, 3)), np.zeros((n_faces, 3)),
+                         np.zeros(n_faces), np.zeros((n_faces, 3)), np.zeros(n_faces, dtype=np.int8),
+                         np.zeros(n_faces, dtype=np.int64), np.zeros((n_faces, 3)))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def read(px, py, pz, grid, missing, counts):
-    """The proxy at one point (SDF frame): (value, gx, gy, gz, status), as ``ProxySDF.read_numpy`` gives it; status
-    ``MISSING`` (the rest NaN) where the point's brick is not ready, its flat index b then added to ``missing`` (-1 - b
-    for a point outside the region: its nearest brick's coarse value alone is needed)."""
+    """The proxy ``grid`` (``zoo.proxy.ProxyGrid``) at one point (SDF frame): (value, gx, gy, gz, status), as
+    ``ProxySDF.read_numpy`` gives it; status ``MISSING`` (the rest NaN) where the point's brick is not ready, its flat
+    index b then added to ``missing`` (-1 - b for a point outside the region: its nearest brick's coarse value alone is
+    needed). ``counts``: a ``COUNTS`` record (its reads and missing counted)."""
     lo, hi, inv_h, band, lip, brick_of, nodes, status, coarse_value, coarse_grad, n_bricks, brick_side, first_centre = grid
-    counts[READS] += 1
+    counts.reads += 1
     ux, uy, uz = (px - lo[0]) * inv_h, (py - lo[1]) * inv_h, (pz - lo[2]) * inv_h
     fx, fy, fz = math.floor(ux), math.floor(uy), math.floor(uz)
     cx, cy, cz = int(fx), int(fy), int(fz)
@@ -58,10 +130,10 @@ def read(px, py, pz, grid, missing, counts):
     row = brick_of[flat]
     if row < 0:
         if inside or math.isnan(coarse_value[flat]):  # outside the region, the nearest brick's coarse value is needed
-            n = counts[N_MISSING]
+            n = counts.missing
             if n < missing.size:
                 missing[n] = flat if inside else -1 - flat
-            counts[N_MISSING] = n + 1
+            counts.missing = n + 1
             return math.nan, math.nan, math.nan, math.nan, MISSING
         row = 0
     ix, iy, iz = cx & 7, cy & 7, cz & 7
@@ -192,34 +264,18 @@ def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
 
 
 @njit(cache=True, error_model="numpy")
-def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, lipschitz,
-                 clusters, cluster_centre, cluster_radius, bounds_lo, bounds_hi,
-                 faces, vertices, reach, ball, last_bary, pattern, grid,
-                 hold, cluster_motion, cluster_key, face_key,
-                 vertex_stamp, stamp, vertex_local, vertex_answer, missing, counts,
-                 out_face, out_tri, out_bary, out_value, out_grad, out_status, searched_face, searched_bary):
-    """The cull and the search of one call (``ProxyCollider._near_faces`` then ``_search``, see its module docstring).
-
-    Args:
-        rotation (3, 3), shift (3,): the mesh's pose in the SDF's frame. search: the search margin; net: the value up
-            to which a face's answer is written out; stop: the Frank-Wolfe gap below which a search stops.
-        search_steps, warm_steps: the descents a cold and a warm face take at most. lipschitz: the proxy's L.
-        clusters (C, K) int64 faces (-1 padding), cluster_centre (C, 3), cluster_radius (C,): the mesh frame's clusters.
-        bounds_lo, bounds_hi (3,): the SDF's bounds. faces (F, 3) int64, vertices (V, 3): the mesh.
-        reach (F, 3), ball (F,): ``zoo.bounds.triangle_reach``. last_bary (F, 3): each face's last answer (NaN: none).
-        pattern (P, 3): a cold face's starts. grid: ``ProxySDF.grid()``.
-        hold: whether faces are passed over on their held bounds: ``cluster_motion`` (C,) how far each cluster's
-            points have moved relative to the SDF in all (m, summed over calls), ``face_key`` (F,) a face's bound
-            on its proxy minimum when last answered plus L times its cluster's motion then (-inf: none), and
-            ``cluster_key`` (C,) the least of its faces' keys: a face (a cluster) whose key less L times the motion
-            now exceeds the search margin cannot hold a contact and is passed over with no read. Both are updated.
-        vertex_stamp (V,) int64, stamp: a vertex whose stamp is ``stamp`` was read this call, its SDF-frame place in
-            ``vertex_local`` (V, 3) and its read in ``vertex_answer`` (V, 5) (value, gradient, status).
-        missing (M,) int64: bricks not ready that reads met. counts (N_COUNTS,) int64, zeroed by the caller.
-        out_*: (F, ...) the faces whose answer is at most ``net`` (``counts[N_OUT]`` rows): face, SDF-frame corners
-            (3, 3), barycentrics, value, gradient, status. searched_face (F,), searched_bary (F, 3): the faces
-            searched inside and their answers (``counts[N_SEARCHED]`` rows), the next call's warm starts.
-    """
+def search_faces(call, mesh, grid, memory, out):
+    """The cull and the search of one call (``ProxyCollider._near_faces`` then ``_search``, see its module docstring):
+    ``call`` a :class:`SearchCall`, ``mesh`` a :class:`KernelMesh`, ``grid`` the proxy (``zoo.proxy.ProxyGrid``),
+    ``memory`` the :class:`FaceMemory` it reads and updates, ``out`` the :class:`KernelBuffers` it writes."""
+    rotation, shift, search, net, stop = call.rotation, call.shift, call.search, call.net, call.stop
+    search_steps, warm_steps, pattern, hold, stamp = call.search_steps, call.warm_steps, call.pattern, call.hold, call.stamp
+    bounds_lo, bounds_hi, lipschitz = call.bounds_lo, call.bounds_hi, grid.lipschitz
+    faces, vertices, reach, ball = mesh.faces, mesh.vertices, mesh.reach, mesh.ball
+    clusters, cluster_centre, cluster_radius = mesh.clusters, mesh.cluster_centre, mesh.cluster_radius
+    last_bary, cluster_motion, cluster_key, face_key = memory.last_bary, memory.cluster_motion, memory.cluster_key, memory.face_key
+    vertex_stamp, vertex_local, vertex_answer, missing = out.vertex_stamp, out.vertex_local, out.vertex_answer, out.missing
+    counts = out.counts[0]
     near = np.empty(faces.shape[0], dtype=np.int64)
     cluster_of = np.empty(faces.shape[0], dtype=np.int64)
     n_near = 0
@@ -227,7 +283,8 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
     b = np.empty(3)
     direction = np.empty(3)
     answer = np.empty(8)
-    n_clusters, size = clusters.shape
+    size = clusters.shape[1]
+    n_clusters = min(call.n_clusters, clusters.shape[0])
     for c in range(n_clusters):
         # the cluster's ball: beyond the SDF's bounds grown by the search margin, or proven above it by one read
         px = rotation[0, 0] * cluster_centre[c, 0] + rotation[0, 1] * cluster_centre[c, 1] + rotation[0, 2] * cluster_centre[c, 2] + shift[0]
@@ -252,12 +309,12 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
                 near[n_near] = face
                 cluster_of[n_near] = c
                 n_near += 1
-    counts[FACES_NEAR] = n_near
+    counts.faces_near = n_near
     for i in range(n_near):
         face = near[i]
         moved = lipschitz * cluster_motion[cluster_of[i]]
         if hold and face_key[face] - moved > search:
-            counts[FACES_SKIPPED] += 1
+            counts.faces_skipped += 1
             continue
         lost = False  # a read met a brick not ready: the face is left out (the caller calls again)
         for k in range(3):
@@ -281,10 +338,10 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         bound = max(max(f0 - lipschitz * reach[face, 0], f1 - lipschitz * reach[face, 1]), f2 - lipschitz * reach[face, 2])
         bound = max(bound, min(f0, f1, f2) - lipschitz * ball[face])
         if bound > search:
-            counts[FACES_SKIPPED] += 1
+            counts.faces_skipped += 1
             face_key[face] = bound + moved
             continue
-        counts[CANDIDATES] += 1
+        counts.candidates += 1
         lowest = 0
         if f1 < f0:
             lowest = 1
@@ -296,15 +353,15 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
         value, gx, gy, gz, state = vertex_answer[vl, 0], vertex_answer[vl, 1], vertex_answer[vl, 2], vertex_answer[vl, 3], vertex_answer[vl, 4]
         gap = _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz)
         if value - gap > search:
-            counts[SCREENED] += 1
+            counts.screened += 1
             face_key[face] = value - gap + moved
         elif gap > stop:  # the search inside: from the last answer (warm) or the lowest of the pattern's points (cold)
             warm = math.isfinite(last_bary[face, 0])
             if warm:
-                counts[WARM] += 1
+                counts.warm += 1
                 first, last = 0, 1
             else:
-                counts[COLD] += 1
+                counts.cold += 1
                 first, last = 0, pattern.shape[0]
             best, best_s = math.inf, 0
             best_b0 = best_b1 = best_b2 = best_gx = best_gy = best_gz = 0.0
@@ -339,23 +396,23 @@ def search_faces(rotation, shift, search, net, stop, search_steps, warm_steps, l
             if lost:
                 continue
             face_key[face] = value - _frank_wolfe_gap(t, b[0], b[1], b[2], gx, gy, gz) + moved
-            n = counts[N_SEARCHED]
-            searched_face[n] = face
-            searched_bary[n, 0], searched_bary[n, 1], searched_bary[n, 2] = b[0], b[1], b[2]
-            counts[N_SEARCHED] = n + 1
+            n = counts.searched
+            out.searched_face[n] = face
+            out.searched_bary[n, 0], out.searched_bary[n, 1], out.searched_bary[n, 2] = b[0], b[1], b[2]
+            counts.searched = n + 1
         else:  # the lowest vertex is a KKT point
             face_key[face] = value - gap + moved
         if value <= net:
-            n = counts[N_OUT]
-            out_face[n] = face
+            n = counts.out
+            out.face[n] = face
             for k in range(3):
-                out_bary[n, k] = b[k]
+                out.bary[n, k] = b[k]
                 for a in range(3):
-                    out_tri[n, k, a] = t[k, a]
-            out_value[n] = value
-            out_grad[n, 0], out_grad[n, 1], out_grad[n, 2] = gx, gy, gz
-            out_status[n] = int(state)
-            counts[N_OUT] = n + 1
+                    out.tri[n, k, a] = t[k, a]
+            out.value[n] = value
+            out.grad[n, 0], out.grad[n, 1], out.grad[n, 2] = gx, gy, gz
+            out.status[n] = int(state)
+            counts.out = n + 1
     last = -1  # the clusters opened: their keys anew, the least of their faces' (the faces come cluster by cluster)
     for i in range(n_near):
         c = cluster_of[i]

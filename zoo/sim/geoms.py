@@ -7,7 +7,7 @@ model disables that filter), contype/conaffinity (the SDF body's own are :func:`
 capsule as a segment and a radius (the SDF meets it in closed form); :func:`geom_surface` gives a geom's
 collision geometry in its own frame: a mesh from the model's compiled mesh data, a box as its 12 exact
 triangles, a sphere, capsule, cylinder or ellipsoid tessellated to within ``tolerance``, and a plane as
-None (an infinite plane: :class:`zoo.sim.world.World` lays a patch of it under the SDF at each step).
+None (an infinite plane: :class:`zoo.sim.pairs.PlanePair` lays a patch of it under the SDF at each step).
 :func:`mixed_parameters` mixes two geoms' friction, condim, solref, solimp, margin and gap by MuJoCo's
 rules (``mj_contactParam``: the higher priority wins, else condim and friction take the maximum, solref
 and solimp mix by solmix, and margin and gap take the maximum).

@@ -20,7 +20,7 @@ sphere or capsule in closed form (f along its axis segment, less its radius), a 
 through a tessellation within ``tolerance``, a plane through a patch of it laid under the SDF at each step
 (a plane is infinite), and another SDF body through that body's
 surface mesh (``surfaces`` names one, else it is extracted once from its SDF by marching cubes); of two SDF
-bodies, the one named first in ``bodies`` uses its SDF. Triangles larger than a quarter of the SDF are split
+bodies, the one named first in ``bodies`` uses its SDF. Each kind of pair is its own type (:mod:`zoo.sim.pairs`). Triangles larger than a quarter of the SDF are split
 once, at attach (``refine``). Fast impacts: a pair whose bodies could close more than the margin within a
 step is collided with a margin that covers it (speculative contacts). Before any query, a pair whose
 bounding balls (a ball and a half-space for a plane) are farther apart than the margin is passed over: a
@@ -29,7 +29,6 @@ robot's many geoms far from the object cost a few microseconds each.
 
 from __future__ import annotations
 
-import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -40,34 +39,21 @@ import torch
 import zoo
 
 from ..errors import InputError
-from ..geometry import face_normals, invert_pose
-from ..methods import method_for
 from ..validation import non_negative_float
 from .contacts import (
-    GRAZING_COS,
-    MERGE_CELL,
-    REFINE_CELLS,
-    SEPARATED_COS,
     add_contacts,
     as_numpy,
     closing_in_time,
     contact_rows,
     facing_faces,
     reduce_contacts,
-    refine_near,
-    refine_to_size,
-    refined_pieces,
 )
-from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import (
-    ContactParameters,
     body_geoms,
     body_pose,
     body_velocity,
-    cube_corners,
     excluded_bodies,
     geom_parameters,
-    geom_pose,
     geom_segment,
     geom_surface,
     may_touch,
@@ -75,130 +61,11 @@ from .geoms import (
     native_colliders,
     partner_geoms,
 )
-from .segments import segment_minima
+from .pairs import Pair, PairSettings, SdfBody, SegmentPair, make_pair, segment_contacts
 from .surface import CONTACT_RESOLUTION, surface_mesh
 
-# contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
-# copies of a vertex's contact by up to a tenth of the edge)
-MERGE_FRACTION = 0.05
 SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
-# a mesh that refining once would grow past this many faces (a large ground mesh under a small SDF) is
-# instead clipped and refined near the SDF at every step, from scratch (no temporal coherence for that pair)
-PREREFINE_MAX_FACES = 200_000
-# a face merged where the mesh is flat is at most this many of the reduction's cells wide: the reduction keeps one
-# contact per cell and a face gives one at most, so wider faces leave a flat support too few contacts
-FLAT_WIDTH_CELLS = 0.5
 TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within this of its surface
-
-
-@dataclass
-class SdfBody:
-    """A body of the model whose collision shape is an SDF (in the body's frame).
-
-    Attributes:
-        name, body: its name and id in the model.
-        geom: the geom sdfzoo's contacts name for it (the body's first geom): MuJoCo's solver takes the body
-            from it, and its friction, condim, solref, solimp, solmix, priority, margin and gap are the SDF's.
-        sdf: the SDF.
-        lo, hi: (3,) the box that holds its surface, body frame.
-        types: (contype, conaffinity) the SDF collides with.
-    """
-
-    name: str
-    body: int
-    geom: int
-    sdf: object
-    lo: np.ndarray
-    hi: np.ndarray
-    types: tuple[int, int]
-
-    @property
-    def reach(self) -> float:
-        """The farthest a point of its box lies from the body's origin."""
-        return float(np.linalg.norm(np.maximum(np.abs(self.lo), np.abs(self.hi))))
-
-    @property
-    def max_edge(self) -> float:
-        """The longest mesh edge refinement leaves near it (a thin plate: its side, not its thickness)."""
-        return float(np.median(self.hi - self.lo)) / REFINE_CELLS
-
-
-@dataclass
-class RefinedMesh:
-    """A pair's surface at the SDF's resolution, made once: its flat regions' needless vertices removed
-    (:func:`zoo.sim.flat_regions.merge_flat_regions`), then its large triangles split
-    (:func:`zoo.sim.contacts.refine_to_size`), in the frame of the surface it comes from: vertices (V, 3), faces
-    (F, 3), cover (:class:`zoo.sim.flat_regions.FaceCover`) the surface's own faces under each face, normals (F, 3)
-    unit face normals."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    cover: FaceCover
-    normals: np.ndarray
-
-    def surface_faces(self, triangles, bary) -> torch.Tensor:
-        """(K,) int64 the surface's own face that holds each point ``bary`` (K, 3) of the faces ``triangles`` (K,)."""
-        triangles, bary = np.asarray(triangles, dtype=np.int64), np.asarray(bary, dtype=np.float64)
-        if self.cover.one_each:
-            return torch.as_tensor(self.cover.members[triangles])
-        points = np.einsum("kv,kvc->kc", bary, self.vertices[self.faces[triangles]])
-        return torch.as_tensor(self.cover.input_faces(triangles, points))
-
-
-@dataclass
-class Pair:
-    """One SDF body and one thing it may touch.
-
-    Attributes:
-        sdf_body: the :class:`SdfBody`.
-        body: the other body's id; geom: the geom its contacts name.
-        params: the pair's mixed contact parameters.
-        frame: "geom" (the surface is in ``geom``'s frame) or "body" (in ``body``'s: another SDF body's surface).
-        kind: "mesh" (triangles), "plane" (an infinite plane, z = 0 of its frame, facing +z) or "segment" (a sphere
-            or capsule: the points within ``radius`` of the segment from -``half_length`` to +``half_length``
-            along z, answered in closed form).
-        vertices, faces: (V, 3), (F, 3) the other side's surface in that frame as given (a mesh); lo, hi: its box.
-        refined: the :class:`RefinedMesh` the collider answers on, or None where the refinement happens near
-            the SDF at each step (a large mesh) or not at all (a plane).
-        collider: the pair's ``zoo.CoherentCollider`` on ``refined`` (None without it).
-    """
-
-    sdf_body: SdfBody
-    body: int
-    geom: int
-    params: ContactParameters
-    frame: str
-    kind: str = "mesh"
-    vertices: np.ndarray | None = None
-    faces: np.ndarray | None = None
-    refined: RefinedMesh | None = None
-    collider: object = None
-    radius: float = 0.0
-    half_length: float = 0.0
-    lo: np.ndarray | None = None
-    hi: np.ndarray | None = None
-
-    @property
-    def is_plane(self) -> bool:
-        return self.kind == "plane"
-
-    @property
-    def bounding_radius(self) -> float:
-        """Radius of a ball about the surface frame's ``centre`` that holds the surface (inf for a plane)."""
-        if self.kind == "plane":
-            return math.inf
-        if self.kind == "segment":
-            return self.half_length + self.radius
-        return float(np.linalg.norm(self.hi - self.lo)) / 2
-
-    @property
-    def centre(self) -> np.ndarray:
-        """The centre (3,) of the surface's box, in its frame."""
-        return np.zeros(3) if self.kind in ("plane", "segment") else (self.lo + self.hi) / 2
-
-    def surface_pose(self, data) -> np.ndarray:
-        """(4, 4) world-from-surface: the pose of the frame ``vertices`` and ``refined`` are in, at ``data``'s kinematics."""
-        return geom_pose(data, self.geom) if self.frame == "geom" else body_pose(data, self.body)
 
 
 @dataclass
@@ -333,6 +200,7 @@ class World:
         self.proxies: dict[str, object] = {}  # SDF body name -> its zoo.proxy.ProxySDF, where one is used
         self.bake_seconds = 0.0  # spent at attach baking the proxies ahead (proxy="ahead")
         self.tolerance = float(tolerance)
+        self.settings = PairSettings(self.margin, method, self.coherence, self.reduce, self.refine)
         include = {self._geom_id(name) for name in include_geoms}
         self.bodies = {name: self._sdf_body(name, sdf, (int(contype), int(conaffinity))) for name, sdf in bodies.items()}
         surfaces = dict(surfaces or {})
@@ -389,48 +257,22 @@ class World:
             for geom in partner_geoms(model, sdf_body.body, sdf_body.types, sdf_body_ids, include):
                 params = mixed_parameters(model, own, geom_parameters(model, geom))
                 segment = geom_segment(model, geom)
+                body = int(model.geom_bodyid[geom])
                 if segment is not None:  # a sphere or a capsule: exact, no triangles
-                    pairs.append(Pair(sdf_body=sdf_body, body=int(model.geom_bodyid[geom]), geom=geom, params=params,
-                                      frame="geom", kind="segment", radius=segment[0], half_length=segment[1]))
+                    pairs.append(SegmentPair(sdf_body=sdf_body, body=body, geom=geom, params=params, frame="geom",
+                                             radius=segment[0], half_length=segment[1], proxy=self._proxy_for(sdf_body)))
                     continue
                 surface = geom_surface(model, geom, self.tolerance)
-                pairs.append(self._pair(sdf_body, int(model.geom_bodyid[geom]), geom, params, "geom", surface))
+                pairs.append(make_pair(sdf_body, body, geom, params, "geom", surface, self.settings,
+                                       lambda: self._proxy_for(sdf_body)))
             for other in sdf_bodies[index + 1:]:  # the earlier-named body's SDF meets the later one's surface
                 if not may_touch(model, sdf_body.body, sdf_body.types, other.body, other.types, excluded):
                     continue
                 params = mixed_parameters(model, own, geom_parameters(model, other.geom))
                 surface = _mesh_pair(surfaces[other.name]) if other.name in surfaces else surface_mesh(other.sdf, CONTACT_RESOLUTION)
-                pairs.append(self._pair(sdf_body, other.body, other.geom, params, "body", surface))
+                pairs.append(make_pair(sdf_body, other.body, other.geom, params, "body", surface, self.settings,
+                                       lambda: self._proxy_for(sdf_body)))
         return pairs
-
-    def _pair(self, sdf_body: SdfBody, body: int, geom: int, params: ContactParameters, frame: str, surface) -> Pair:
-        pair = Pair(sdf_body=sdf_body, body=body, geom=geom, params=params, frame=frame)
-        if surface is None:
-            pair.kind = "plane"
-            return pair
-        pair.vertices, pair.faces = surface
-        pair.lo, pair.hi = pair.vertices.min(axis=0), pair.vertices.max(axis=0)
-        max_edge = sdf_body.max_edge if self.refine else math.inf
-        # the flat pass is for a model's meshes: an SDF body's surface is made at the resolution contacts need, and
-        # a mesh larger than this is refined near the SDF at every step
-        flat = self.refine and frame == "geom" and len(pair.faces) <= PREREFINE_MAX_FACES
-        merged, cover = (merge_flat_regions(pair.vertices, pair.faces, self.flat_width(sdf_body), refined_pieces(max_edge))
-                         if flat else (pair.faces, None))
-        refined = refine_to_size(pair.vertices, merged, max_edge, PREREFINE_MAX_FACES)
-        if refined is not None:
-            vertices, faces, origin = refined
-            cover = (cover or FaceCover.identity(pair.vertices, pair.faces)).take(origin, vertices[faces])
-            mesh = (torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces))
-            pair.collider = zoo.CoherentCollider(sdf_body.sdf, mesh, margin=self.margin, method=self._method_for(sdf_body.sdf),
-                                                 coherence=self.coherence, proxy=self._proxy_for(sdf_body), deferred=True)
-            if self.reduce and pair.collider.deferred:  # only what the reduction can keep comes back
-                from ..proxy_collider import Thinning
-
-                band = 2 * pair.collider.proxy.error_bound if self.reduce == "exact" else 0.0
-                pair.collider.thin = Thinning(MERGE_CELL * self.merge_distance(sdf_body), GRAZING_COS, SEPARATED_COS,
-                                              band=band)
-            pair.refined = RefinedMesh(vertices, faces, cover, face_normals(vertices[faces]))
-        return pair
 
     def _proxy_for(self, sdf_body: SdfBody):
         """The proxy ``sdf_body``'s mesh pairs search on (one per body, from the cache where baked before), or None:
@@ -451,9 +293,6 @@ class World:
             else:  # the caller's own proxy, or None: an SDF that is not a model's shape
                 self.proxies[sdf_body.name] = None if isinstance(given, str) else given
         return self.proxies[sdf_body.name]
-
-    def _method_for(self, sdf) -> str:
-        return method_for(self.method, sdf)
 
     # -- running -----------------------------------------------------------------------------------
 
@@ -537,8 +376,7 @@ class World:
     def reset(self) -> None:
         """Forget what the colliders carried from step to step (after a reset of the data, say)."""
         for pair in self.pairs:
-            if pair.collider is not None:
-                pair.collider.reset()
+            pair.reset()
 
     def collider_stats(self):
         """``zoo.collider.CoherenceStats`` summed over every pair's collider and call so far."""
@@ -546,8 +384,8 @@ class World:
 
         total = CoherenceStats()
         for pair in self.pairs:
-            if pair.collider is not None:
-                total.add(pair.collider.stats)
+            if pair.stats is not None:
+                total.add(pair.stats)
         return total
 
     # -- detection ---------------------------------------------------------------------------------
@@ -568,19 +406,19 @@ class World:
             closing = self._closing_distance(pair, data, velocities)
             if closing > margin:  # would cross the margin in one step: see it coming
                 margin = SPECULATIVE_FACTOR * closing
-            if self._apart(pair, poses[pair.sdf_body.body], pair.surface_pose(data), margin):
+            if pair.apart(poses[pair.sdf_body.body], pair.surface_pose(data), margin):
                 continue
             stats.margin = max(stats.margin, margin)
             stats.speculative |= closing > max(self.margin, pair.params.margin)
             near.append((pair, margin))
-        segments = self._collide_segments([(p, m) for p, m in near if p.kind == "segment"], data)
+        segments = segment_contacts([(p, m) for p, m in near if isinstance(p, SegmentPair)], data)
         found = []  # PairContacts of the pairs with contacts MuJoCo can use
         for pair, margin in near:
-            if pair.kind == "segment":
+            if isinstance(pair, SegmentPair):
                 contacts, faces_world = segments.get(id(pair), (None, None))
             else:
-                self._give_closing(pair, data, velocities)
-                contacts, faces_world = self._collide(pair, data, margin)
+                contacts, faces_world = pair.collide(poses[pair.sdf_body.body], pair.surface_pose(data), margin,
+                                                     self._closing(pair, data, velocities))
             usable = self._usable(pair, data, contacts, faces_world, velocities)
             if usable is not None:
                 stats.raw_contacts += len(usable.depths)
@@ -598,18 +436,6 @@ class World:
         stats.max_penetration = deepest
         return rows, collected, geoms, stats
 
-    @staticmethod
-    def _apart(pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float) -> bool:
-        """Whether the balls (or, for a plane, the ball and the half-space) around the two sides are more than
-        ``margin`` apart: no contact, nothing to query."""
-        sdf_body = pair.sdf_body
-        centre = t_sdf[:3, :3] @ ((sdf_body.lo + sdf_body.hi) / 2) + t_sdf[:3, 3]
-        radius = float(np.linalg.norm(sdf_body.hi - sdf_body.lo)) / 2
-        if pair.kind == "plane":
-            return float(t_other[:3, 2] @ (centre - t_other[:3, 3])) - radius > margin
-        other = t_other[:3, :3] @ pair.centre + t_other[:3, 3]
-        return float(np.linalg.norm(centre - other)) - radius - pair.bounding_radius > margin
-
     def _closing_distance(self, pair: Pair, data, velocities: dict) -> float:
         """Upper bound (m) on how much closer the pair's surfaces can get in one step.
 
@@ -622,33 +448,12 @@ class World:
         linear = float(np.linalg.norm(a[:3] - b[:3]))
         return (linear + reach * float(np.linalg.norm(a[3:])) + lever * float(np.linalg.norm(b[3:]))) * self.model.opt.timestep
 
-    def _give_closing(self, pair: Pair, data, velocities: dict) -> None:
-        """Give the pair's proxy collider, where it thins its contacts, this step's relative motion of the two bodies
-        (``Thinning.closing``: what :func:`closing_in_time` tests in :meth:`_usable`)."""
-        collider = pair.collider
-        if getattr(collider, "thin", None) is None:
-            return
+    def _closing(self, pair: Pair, data, velocities: dict) -> tuple:
+        """The pair's relative motion this step, as a collider that thins its contacts tests it
+        (``zoo.proxy_collider.Thinning.closing``, what :func:`closing_in_time` tests in :meth:`_usable`)."""
         a, b = velocities[pair.sdf_body.body], velocities[pair.body]
         shift = a[:3] - b[:3] - np.cross(a[3:], data.xpos[pair.sdf_body.body]) + np.cross(b[3:], data.xpos[pair.body])
-        collider.thin = replace(collider.thin, closing=(shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR))
-
-    def _collide(self, pair: Pair, data, margin: float):
-        """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a mesh or plane pair, or (None, None)."""
-        sdf_body = pair.sdf_body
-        t_sdf, t_other = body_pose(data, sdf_body.body), pair.surface_pose(data)
-        if pair.kind == "plane":
-            return self._collide_plane(pair, t_sdf, t_other, margin)
-        world_lo, world_hi = _world_box(t_sdf, sdf_body.lo - margin, sdf_body.hi + margin)
-        mesh_lo, mesh_hi = _world_box(t_other, pair.lo, pair.hi)
-        if (world_hi < mesh_lo).any() or (mesh_hi < world_lo).any():
-            return None, None
-        if pair.collider is None:
-            return self._collide_refining_near(pair, t_sdf, t_other, margin)
-        contacts = pair.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
-        faces_world = pair.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
-        if not getattr(pair.collider, "deferred", False):  # a deferred pair's are named when the SDF answers them
-            contacts.triangles = pair.refined.surface_faces(contacts.triangles, contacts.bary)
-        return contacts, faces_world
+        return shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR
 
     def _usable(self, pair: Pair, data, contacts, faces_world, velocities: dict) -> PairContacts | None:
         """The pair's contacts with the rows MuJoCo can use, or None where there are none: facing their faces, and
@@ -667,7 +472,7 @@ class World:
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
         rows kept. Other pairs, and every pair with ``reduce="exact"``, as they are (reduced on the SDF's depths)."""
-        if self.reduce is not True or not getattr(found.pair.collider, "deferred", False):
+        if self.reduce is not True or not found.pair.deferred:
             return found
         return replace(found, usable=self._reduced(found), reduced=True)
 
@@ -678,17 +483,7 @@ class World:
         if not self.reduce or not len(keep):
             return keep
         return keep[reduce_contacts(found.points[keep], found.depths[keep], found.normals[keep], found.faces_world[keep],
-                                    merge_tol=self.merge_distance(found.pair.sdf_body))]
-
-    @classmethod
-    def flat_width(cls, sdf_body: SdfBody) -> float:
-        """m: the widest face the flat-region pass makes for ``sdf_body``'s pairs (``FLAT_WIDTH_CELLS`` cells)."""
-        return FLAT_WIDTH_CELLS * MERGE_CELL * cls.merge_distance(sdf_body)
-
-    @staticmethod
-    def merge_distance(sdf_body: SdfBody) -> float:
-        """m: the reduction's ``merge_tol`` for the contacts of ``sdf_body``'s pairs."""
-        return MERGE_FRACTION * float((sdf_body.hi - sdf_body.lo).min())
+                                    merge_tol=found.pair.sdf_body.merge_distance)]
 
     @staticmethod
     def exact_answers(found: list[PairContacts]) -> list[PairContacts]:
@@ -697,7 +492,7 @@ class World:
         on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
         from ..proxy_collider import exact_contacts_together
 
-        deferred = [i for i, f in enumerate(found) if len(f.usable) and getattr(f.pair.collider, "deferred", False)]
+        deferred = [i for i, f in enumerate(found) if len(f.usable) and f.pair.deferred]
         if not deferred:
             return found
         found = list(found)
@@ -712,94 +507,6 @@ class World:
                                     asked.reduced)
         return found
 
-    def _collide_refining_near(self, pair: Pair, t_sdf: np.ndarray, t_other: np.ndarray, margin: float):
-        """(zoo.Contacts in the world frame, their faces' world normals (K, 3)) of a pair whose mesh is refined near
-        the SDF at this step, or (None, None) when no face reaches the SDF's box."""
-        sdf_body = pair.sdf_body
-        sdf_from_mesh = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_other  # rigid: a transpose, not a general inverse
-        local = pair.vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
-        max_edge = sdf_body.max_edge if self.refine else math.inf
-        local, faces, origin = refine_near(local, pair.faces, sdf_body.lo - margin, sdf_body.hi + margin, max_edge)
-        if len(faces) == 0:
-            return None, None
-        return self._collide_in_sdf_frame(pair, local, faces, origin, t_sdf, margin)
-
-    def _collide_plane(self, pair: Pair, t_sdf: np.ndarray, t_plane: np.ndarray, margin: float):
-        """The pair's contacts with a patch of its (infinite) plane under the SDF's box, at this step."""
-        sdf_body = pair.sdf_body
-        plane_from_sdf = invert_pose(torch.from_numpy(t_plane)).numpy() @ t_sdf
-        corners = cube_corners(sdf_body.lo, sdf_body.hi) @ plane_from_sdf[:3, :3].T + plane_from_sdf[:3, 3]
-        if corners[:, 2].min() > margin:
-            return None, None
-        # cells whose diagonal is within the refinement's edge, so that zoo.collide answers them as they are
-        cell = sdf_body.max_edge / math.sqrt(2) if self.refine else float(np.ptp(corners[:, :2], axis=0).max()) + 2 * margin
-        lo = np.floor((corners[:, :2].min(axis=0) - margin) / cell).astype(np.int64)
-        hi = np.ceil((corners[:, :2].max(axis=0) + margin) / cell).astype(np.int64)
-        vertices, faces = _grid(lo, hi, cell)
-        sdf_from_plane = invert_pose(torch.from_numpy(plane_from_sdf)).numpy()
-        local = vertices @ sdf_from_plane[:3, :3].T + sdf_from_plane[:3, 3]
-        return self._collide_in_sdf_frame(pair, local, faces, np.arange(len(faces)), t_sdf, margin)
-
-    def _collide_segments(self, near: list, data) -> dict:
-        """Spheres' and capsules' contacts in closed form, every such pair of a step together (one set of queries per
-        SDF body): {id(pair): (contacts in the world frame, their normals as the faces' normals)} for the pairs that
-        touch or come within their margin. A pair's contacts are its axis segment's points of least f
-        (:func:`segment_minima`), each at depth f - radius along the SDF's normal there."""
-        found = {}
-        by_body: dict[str, list] = {}
-        for pair, margin in near:
-            by_body.setdefault(pair.sdf_body.name, []).append((pair, margin))
-        for pairs in by_body.values():
-            sdf_body = pairs[0][0].sdf_body
-            t_sdf = body_pose(data, sdf_body.body)
-            sdf_from_world = invert_pose(torch.from_numpy(t_sdf)).numpy()
-            ends = []
-            for pair, _ in pairs:
-                t_geom = sdf_from_world @ pair.surface_pose(data)
-                axis = t_geom[:3, 2] * pair.half_length
-                ends.append((t_geom[:3, 3] - axis, t_geom[:3, 3] + axis))
-            radii = np.array([pair.radius for pair, _ in pairs])
-            margins = np.array([margin for _, margin in pairs])
-            dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
-            proxy = self._proxy_for(sdf_body)
-            lower_bound = None if proxy is None else (lambda p, proxy=proxy: proxy.read_numpy(p)[0] - proxy.error_bound)
-            minima = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
-                                    radii + margins, dtype, lower_bound)
-            if not len(minima.points):
-                continue
-            centres, owner, values, grads = minima.points, minima.owner, minima.values, minima.grads
-            length = np.linalg.norm(grads, axis=1, keepdims=True)
-            normals = grads / np.where(length > 0, length, 1.0)
-            depths = values - radii[owner]
-            rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
-            for index, (pair, margin) in enumerate(pairs):
-                rows = np.nonzero((owner == index) & (depths <= margin))[0]
-                if not len(rows):
-                    continue
-                points = centres[rows] - pair.radius * normals[rows]  # its point deepest in the SDF
-                normals_world = normals[rows] @ rotation.T
-                k = len(rows)
-                found[id(pair)] = (zoo.Contacts(
-                    points=torch.as_tensor(points @ rotation.T + origin), depths=torch.as_tensor(depths[rows]),
-                    normals=torch.as_tensor(normals_world), triangles=torch.full((k,), -1, dtype=torch.long),
-                    bary=torch.zeros(k, 3, dtype=torch.float64), n_triangles=0, n_candidates=k, method="closed-form"),
-                    normals_world)
-        return found
-
-    def _collide_in_sdf_frame(self, pair: Pair, local: np.ndarray, faces: np.ndarray, origin: np.ndarray,
-                              t_sdf: np.ndarray, margin: float):
-        """``zoo.collide`` of the pair's SDF with a mesh given in the SDF's frame: (contacts in the world frame,
-        their faces' world normals (K, 3)); triangles index ``origin``'s faces."""
-        used, inverse = np.unique(faces, return_inverse=True)
-        mesh = (torch.as_tensor(local[used], dtype=torch.float32), torch.as_tensor(inverse.reshape(-1, 3)))
-        world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
-        contacts = zoo.collide(pair.sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin,
-                               method=self._method_for(pair.sdf_body.sdf))
-        faces_world = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ t_sdf[:3, :3].T  # (K, 3)
-        contacts.triangles = torch.as_tensor(origin)[contacts.triangles]
-        return contacts, faces_world
-
-
 # -- helpers ---------------------------------------------------------------------------------------
 
 
@@ -807,28 +514,6 @@ def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
     from .model import mesh_arrays
 
     return mesh_arrays(mesh, "surface")
-
-
-def _grid(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """A flat grid in z = 0 over cells lo..hi (2,) int of side ``cell``: vertices (V, 3), faces (F, 3) facing +z."""
-    xs = cell * np.arange(lo[0], hi[0] + 1)
-    ys = cell * np.arange(lo[1], hi[1] + 1)
-    nx, ny = len(xs), len(ys)
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    vertices = np.stack([gx.ravel(), gy.ravel(), np.zeros(nx * ny)], axis=1)
-    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
-    a = (i * ny + j).ravel()
-    b, c, d = a + ny, a + ny + 1, a + 1
-    faces = np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)])
-    return vertices, faces
-
-
-def _world_box(pose: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World AABB of the box [lo, hi] (body frame) under ``pose``."""
-    centre, half = (lo + hi) / 2, (hi - lo) / 2
-    c = pose[:3, :3] @ centre + pose[:3, 3]
-    h = np.abs(pose[:3, :3]) @ half
-    return c - h, c + h
 
 
 def _select(contacts, keep: np.ndarray):
@@ -853,4 +538,4 @@ def _concat_contacts(parts):
                         n_candidates=sum(p.n_candidates for p in parts), method=parts[0].method)
 
 
-__all__ = ["attach", "World", "SdfBody", "Pair", "RefinedMesh", "StepStats"]
+__all__ = ["attach", "World", "PairContacts", "StepStats"]
