@@ -51,7 +51,6 @@ def faces_within_margin(sim, sdf_name: str, mesh_name: str):
     simulation holds it (refined once at build), at the current poses; None where the pair is refined near
     the SDF at every step instead (no fixed mesh)."""
     import zoo
-
     from zoo.sim.pairs import MeshPair
 
     pair = sim.world.pair(sdf_name, mesh_name)
