@@ -32,6 +32,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 import torch
@@ -264,14 +265,14 @@ class World:
                     continue
                 surface = geom_surface(model, geom, self.tolerance)
                 pairs.append(make_pair(sdf_body, body, geom, params, "geom", surface, self.settings,
-                                       lambda: self._proxy_for(sdf_body)))
+                                       partial(self._proxy_for, sdf_body)))
             for other in sdf_bodies[index + 1:]:  # the earlier-named body's SDF meets the later one's surface
                 if not may_touch(model, sdf_body.body, sdf_body.types, other.body, other.types, excluded):
                     continue
                 params = mixed_parameters(model, own, geom_parameters(model, other.geom))
                 surface = _mesh_pair(surfaces[other.name]) if other.name in surfaces else surface_mesh(other.sdf, CONTACT_RESOLUTION)
                 pairs.append(make_pair(sdf_body, other.body, other.geom, params, "body", surface, self.settings,
-                                       lambda: self._proxy_for(sdf_body)))
+                                       partial(self._proxy_for, sdf_body)))
         return pairs
 
     def _proxy_for(self, sdf_body: SdfBody):
