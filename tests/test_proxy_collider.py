@@ -14,11 +14,9 @@ import torch
 from test_coherence import plane_mesh, pose, rotation
 
 import zoo
-from zoo.coherence import _plane_descent
 from zoo.geometry import barycentric_grid
 from zoo.proxy import bake_proxy
 from zoo.proxy_collider import CLUSTER, KERNELS, ProxyCollider, _clusters
-from zoo.proxy_collider import _plane_descent as plane_descent_np
 
 
 def brute_minima(sdf, tri: torch.Tensor, resolution: int = 40) -> torch.Tensor:
@@ -311,18 +309,6 @@ def test_clusters_hold_every_face_once_within_their_balls():
     for c in range(len(clusters)):
         faces = clusters[c][clusters[c] >= 0]
         assert np.linalg.norm(corners[faces].reshape(-1, 3) - centres[c], axis=1).max() <= radii[c] + 1e-12
-
-
-def test_numpy_descent_direction_is_coherences():
-    g = torch.Generator().manual_seed(3)
-    tri = torch.randn(500, 3, 3, generator=g, dtype=torch.float64)
-    bary = torch.rand(500, 3, generator=g, dtype=torch.float64)
-    bary[:100, 0] = 0  # on an edge
-    bary[100:150, :2] = 0  # at a vertex
-    bary = bary / bary.sum(-1, keepdim=True)
-    grads = torch.randn(500, 3, generator=g, dtype=torch.float64)
-    expected = _plane_descent(tri, bary, grads).numpy()
-    assert np.allclose(plane_descent_np(tri.numpy(), bary.numpy(), grads.numpy()), expected, atol=1e-9)
 
 
 def test_every_narrow_phase_is_a_collider_and_the_default_one_on_a_proxy_answers_its_calls():

@@ -62,6 +62,7 @@ from .errors import InputError
 from .geometry import bary_to_points, edge_lengths, invert_pose, transform_points, transform_vectors
 from .methods import check_supports, iterations
 from .sdf import check_sdf
+from .simplex import descent_segment, frank_wolfe_gap
 from .solvers import frank_wolfe, line_search_step
 from .validation import as_pose, int_at_least, non_negative_float, positive_float
 
@@ -87,14 +88,6 @@ REFRESH_FRACTION = 0.5
 # Poses kept for the lasting proofs (one per call): when full, the proofs made at the older half are dropped (those faces
 # go back to the exact tests), so the history and its per-call work stay bounded however long the trajectory.
 POSE_HISTORY = 64
-
-
-def frank_wolfe_gap(tri: torch.Tensor, bary: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
-    """Frank-Wolfe's gap g . p - min_i g . v_i (W,) at the answers ``bary`` (W, 3) on ``tri`` (W, 3, 3) with the
-    gradients ``grads`` (W, 3) there: 0 at a KKT point, and a bound of how far above the minimum the answer
-    is where f is convex."""
-    scores = torch.einsum("wc,wvc->wv", grads, tri)
-    return (scores * bary).sum(dim=-1) - scores.amin(dim=-1)
 
 
 def _values_at(sdf, tri: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
@@ -163,17 +156,15 @@ def _tangent_step(sdf, tri: torch.Tensor, bary: torch.Tensor, f0: torch.Tensor, 
     """A line search along the steepest descent of f inside each triangle's plane from ``bary`` (W, 3) (f0 (W,)
     and g (W, 3) there), as far as the triangle reaches: -> bary (W, 3).
 
-    The direction is -g projected onto the plane; where that would leave the triangle across the edge the
-    point lies on, onto that edge; at a vertex, none. The search is :func:`zoo.solvers.line_search_step` on
+    The direction is :func:`zoo.simplex.descent_segment`'s: -g projected onto the plane; where that would leave the
+    triangle across the edge the point lies on, onto that edge; where that goes nowhere, towards Frank-Wolfe's vertex.
+    The search is :func:`zoo.solvers.line_search_step` on
     the segment from the point to where the direction leaves the triangle (one value query there). Coordinates
     within ``BOUNDARY`` of 0 count as on the boundary (they are set to 0), or rounding would hold a point
     that lies on an edge to a step of nothing."""
     bary = torch.where(bary <= BOUNDARY, torch.zeros_like(bary), bary)
     bary = bary / bary.sum(dim=-1, keepdim=True)
-    direction = _plane_descent(tri, bary, g)  # (W, 3) barycentric, rows sum to 0
-    leaving = direction < 0
-    reach = torch.where(leaving, bary / (-direction).clamp_min(torch.finfo(bary.dtype).tiny), torch.inf).amin(dim=-1)
-    reach = torch.where(torch.isfinite(reach), reach, torch.zeros_like(reach))
+    direction, reach = descent_segment(tri, bary, g, boundary=0.0)  # (W, 3) barycentric, rows sum to 0; (W,)
     rows = (reach * direction.abs().amax(dim=-1) > 0).nonzero().squeeze(-1)
     if not rows.numel():
         return bary
@@ -187,30 +178,6 @@ def _tangent_step(sdf, tri: torch.Tensor, bary: torch.Tensor, f0: torch.Tensor, 
     out = bary.clone()
     out[rows] = (bary[rows] + (t * reach[rows]).unsqueeze(-1) * direction[rows]).clamp_min(0)
     return out / out.sum(dim=-1, keepdim=True)
-
-
-def _plane_descent(tri: torch.Tensor, bary: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """-g projected onto each triangle's plane (W, 3, 3), in barycentric coordinates (W, 3) summing to 0; onto
-    the edge a point on the boundary lies on where it would leave across it; zero at a vertex or on a
-    degenerate triangle."""
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    a11, a12, a22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
-    r1, r2 = -(g * e1).sum(-1), -(g * e2).sum(-1)
-    det = a11 * a22 - a12 * a12
-    flat = det > 1e-6 * a11 * a22  # a triangle with area, not a needle
-    det = torch.where(flat, det, torch.ones_like(det))
-    x, y = (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
-    direction = torch.where(flat.unsqueeze(-1), torch.stack([-(x + y), x, y], dim=-1), torch.zeros_like(bary))
-    blocked = (bary <= 0) & (direction < 0)
-    # on one edge (the coordinate i at 0): the descent along that edge, from vertex j = i + 1 to k = i + 2
-    i = blocked.to(torch.int64).argmax(dim=-1)
-    j, k = (i + 1) % 3, (i + 2) % 3
-    rows = torch.arange(tri.shape[0], device=tri.device)
-    edge = tri[rows, k] - tri[rows, j]
-    along = -(g * edge).sum(-1) / (edge * edge).sum(-1).clamp_min(torch.finfo(tri.dtype).tiny)
-    on_edge = F.one_hot(k, 3).to(bary) - F.one_hot(j, 3).to(bary)
-    direction = torch.where((blocked.sum(-1) == 1).unsqueeze(-1), along.unsqueeze(-1) * on_edge, direction)
-    return torch.where((blocked.sum(-1) > 1).unsqueeze(-1), torch.zeros_like(direction), direction)
 
 
 class _CountingSDF:

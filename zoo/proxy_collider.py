@@ -72,6 +72,7 @@ from .errors import InputError
 from .geometry import face_normals
 from .methods import iterations
 from .proxy import IN_BAND
+from .simplex import descent_segment, frank_wolfe_gap, on_simplex
 from .validation import as_pose_array, non_negative_float
 
 CLUSTER = 32  # faces per cluster of the first cull
@@ -81,7 +82,6 @@ SEARCH_STEPS, WARM_SEARCH_STEPS = 3, 1
 CONVERGED_GAP = 0.02  # a face whose Frank-Wolfe gap on the proxy is below this fraction of the margin stops searching
 KERNELS = ("numba", "numpy")  # how the per-face passes run: compiled (zoo.proxy_kernel), or numpy passes
 POLISH_SAMPLES = 8  # points on the proxy along the SDF's steepest descent that choose a polishing step's length
-BOUNDARY = 1e-9  # barycentric coordinates this small put a point on its triangle's boundary
 # The search's starts (barycentric): the vertices, the edges' midpoints and three inner points, so that a minimum in
 # any part of the face has a start near it; the last answer is added per face.
 PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5],
@@ -373,7 +373,7 @@ class ProxyCollider:
         bary = np.eye(3)[lowest]
         value, grad, state = vertex_values[rows, lowest], vertex_grads[rows, lowest], vertex_status[rows, lowest]
         # the vertex test: a lowest vertex that is a KKT point is the answer; the screen drops what stays above
-        gap = _frank_wolfe_gap(tri, bary, grad)
+        gap = frank_wolfe_gap(tri, bary, grad)
         stop = CONVERGED_GAP * max(search, 1e-9)
         open_ = np.flatnonzero((gap > stop) & (value - gap <= search))
         stats.screened = int(np.count_nonzero(value - gap > search))
@@ -400,7 +400,7 @@ class ProxyCollider:
             if step == WARM_SEARCH_STEPS:
                 active = active[~warm[active]]
             ra = rows[active]
-            gap = _frank_wolfe_gap(tri[active], bary[ra], grad[ra])
+            gap = frank_wolfe_gap(tri[active], bary[ra], grad[ra])
             active = active[(gap > stop) & (value[ra] - gap <= search) & (state[ra] == IN_BAND)]
             if not active.size:
                 break
@@ -428,8 +428,8 @@ class ProxyCollider:
         """One line search along the steepest descent of the proxy inside each triangle (W, 3, 3) from ``bary`` (W, 3)
         (f0 (W,) and g (W, 3) there), to where it leaves the triangle: -> bary, values, gradients, status at the lower
         of its end and the parabola's minimiser (the parabola through f0, the slope and the end's value)."""
-        direction, reach = _descent_segment(tri, bary, g)
-        end = _on_simplex(bary + reach[:, None] * direction)
+        direction, reach = descent_segment(tri, bary, g)
+        end = on_simplex(bary + reach[:, None] * direction)
         p0, p1 = np.einsum("wv,wvc->wc", bary, tri), np.einsum("wv,wvc->wc", end, tri)
         f1, g1, s1 = self._read(p1, stats)
         slope = ((p1 - p0) * g).sum(axis=1)  # < 0 along a descent
@@ -437,7 +437,7 @@ class ProxyCollider:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(curvature > 0, np.clip(-slope / (2 * curvature), 0, 1), 1.0)
         t = np.where(np.isfinite(t), t, 0.0)
-        mid = _on_simplex(bary + (t * reach)[:, None] * direction)
+        mid = on_simplex(bary + (t * reach)[:, None] * direction)
         fm, gm, sm = self._read(np.einsum("wv,wvc->wc", mid, tri), stats)
         end_lower = f1 < fm
         pick = end_lower[:, None]
@@ -482,7 +482,7 @@ class ProxyCollider:
         bary = bary.copy()
         margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (len(tri),))
         f, g = self._sdf_at(np.einsum("av,avc->ac", bary, tri), stats)
-        gap = _frank_wolfe_gap(tri, bary, g)
+        gap = frank_wolfe_gap(tri, bary, g)
         polish = np.flatnonzero((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin))
         if polish.size:
             b, f1, g1 = self._polish(tri[polish], bary[polish], g[polish], stats)
@@ -513,9 +513,9 @@ class ProxyCollider:
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
         SDF's gradient there), as far as the lowest of ``POLISH_SAMPLES`` points along it on the proxy (one read), and
         the SDF's value and gradient at that point (one query): -> bary (P, 3), values (P,), gradients (P, 3) there."""
-        direction, reach = _descent_segment(tri, bary, g)
+        direction, reach = descent_segment(tri, bary, g)
         t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
-        along = _on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
+        along = on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
         values = self._read(np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
         end = along[np.arange(len(tri)), values.argmin(axis=1)]
         return (end, *self._sdf_at(np.einsum("pv,pvc->pc", end, tri), stats))
@@ -755,61 +755,6 @@ def _morton(q: np.ndarray) -> np.ndarray:
         for axis in range(3):
             code |= ((q[:, axis] >> bit) & 1) << (3 * bit + (2 - axis))
     return code
-
-
-def _frank_wolfe_gap(tri: np.ndarray, bary: np.ndarray, grads: np.ndarray) -> np.ndarray:
-    """Frank-Wolfe's gap (W,) at ``bary`` (W, 3) on ``tri`` (W, 3, 3) with gradients ``grads`` (W, 3) there
-    (numpy's :func:`zoo.coherence.frank_wolfe_gap`)."""
-    scores = np.einsum("wc,wvc->wv", grads, tri)
-    return (scores * bary).sum(axis=1) - scores.min(axis=1)
-
-
-def _plane_descent(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """-g projected onto each triangle's plane (W, 3, 3) in barycentric coordinates (W, 3) summing to 0; along the
-    edge a boundary point lies on where it would leave across it; zero at a vertex or on a needle (numpy's
-    ``zoo.coherence._plane_descent``)."""
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    a11, a12, a22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    r1, r2 = -(g * e1).sum(1), -(g * e2).sum(1)
-    det = a11 * a22 - a12 * a12
-    flat = det > 1e-6 * a11 * a22
-    det = np.where(flat, det, 1.0)
-    x, y = (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
-    direction = np.where(flat[:, None], np.stack([-(x + y), x, y], axis=1), 0.0)
-    blocked = (bary <= BOUNDARY) & (direction < 0)
-    i = blocked.argmax(axis=1)
-    j, k = (i + 1) % 3, (i + 2) % 3
-    rows = np.arange(len(tri))
-    edge = tri[rows, k] - tri[rows, j]
-    along = -(g * edge).sum(1) / np.maximum((edge * edge).sum(1), np.finfo(np.float64).tiny)
-    on_edge = np.zeros_like(bary)
-    on_edge[rows, k], on_edge[rows, j] = along, -along
-    count = blocked.sum(axis=1)[:, None]
-    return np.where(count == 1, on_edge, np.where(count > 1, 0.0, direction))
-
-
-def _descent_segment(tri: np.ndarray, bary: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The steepest descent of a field with gradients ``g`` (W, 3) inside the triangles (W, 3, 3) from ``bary`` (W, 3):
-    its barycentric direction (W, 3) (:func:`_plane_descent`) and how far along it the triangle reaches (W,). Where
-    that goes nowhere (a needle, whose plane is not defined, or a corner the plane's descent leaves), the direction
-    to Frank-Wolfe's vertex, a descent wherever its gap is positive, reaching it."""
-    direction = _plane_descent(tri, bary, g)
-    leaving = direction < 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        reach = np.where(leaving, bary / np.where(leaving, -direction, 1.0), np.inf).min(axis=1)
-    reach = np.where(np.isfinite(reach), reach, 0.0)
-    stuck = np.flatnonzero(reach * np.abs(direction).max(axis=1) <= 0)
-    if stuck.size:
-        vertex = np.einsum("wvc,wc->wv", tri[stuck], g[stuck]).argmin(axis=1)
-        direction[stuck] = np.eye(3)[vertex] - bary[stuck]
-        reach[stuck] = 1.0
-    return direction, reach
-
-
-def _on_simplex(bary: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (..., 3) a step left a rounding error off the triangle: clipped at 0, summing to 1."""
-    out = np.clip(bary, 0, None)
-    return out / out.sum(axis=-1, keepdims=True)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ except ImportError as error:  # pragma: no cover - numba is a dependency of sdfz
 
 IN_BAND, ABOVE, UNKNOWN = 0, 1, -1  # zoo.proxy's read status
 MISSING = 2  # a read's status where its brick is not ready (a lazy proxy): the caller bakes it and calls again
-BOUNDARY = 1e-9  # as zoo.proxy_collider.BOUNDARY
+BOUNDARY = 1e-9  # as zoo.simplex.BOUNDARY
 TINY = np.finfo(np.float64).tiny
 
 # What a call counts (one record; the first five are zoo.collider.CoherenceStats's names)
@@ -171,7 +171,7 @@ def read(px, py, pz, grid, missing, counts):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _frank_wolfe_gap(t, b0, b1, b2, gx, gy, gz):
-    """Frank-Wolfe's gap at barycentrics (b0, b1, b2) on the triangle ``t`` (3, 3) with gradient g there."""
+    """``zoo.simplex.frank_wolfe_gap`` at barycentrics (b0, b1, b2) on the triangle ``t`` (3, 3) with gradient g there."""
     s0 = gx * t[0, 0] + gy * t[0, 1] + gz * t[0, 2]
     s1 = gx * t[1, 0] + gy * t[1, 1] + gz * t[1, 2]
     s2 = gx * t[2, 0] + gy * t[2, 1] + gz * t[2, 2]
@@ -180,7 +180,7 @@ def _frank_wolfe_gap(t, b0, b1, b2, gx, gy, gz):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _descent_segment(t, b, gx, gy, gz, direction):
-    """``zoo.proxy_collider._descent_segment`` for one face: the steepest descent's barycentric direction (written
+    """``zoo.simplex.descent_segment`` for one face: the steepest descent's barycentric direction (written
     into ``direction`` (3,)) and how far along it the triangle reaches (returned)."""
     e1x, e1y, e1z = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
     e2x, e2y, e2z = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
