@@ -3,7 +3,8 @@
 :class:`ProxyCollider` is what ``zoo.CoherentCollider(proxy=...)`` and a simulation's mesh pairs run. Steps 1 to 3 of a call run as one
 compiled loop over the mesh's faces near the SDF (:mod:`zoo.proxy_kernel`, the default ``kernel="numba"``), or as a
 fixed handful of vectorised numpy passes, each with one proxy read (:meth:`zoo.proxy.ProxySDF.read_numpy`) for all
-the faces (``kernel="numpy"``, the reference the compiled loop is tested against); neither loops over faces in Python:
+the faces (``kernel="numpy"``: :func:`zoo.proxy_search.numpy_search`, the reference the compiled loop is tested
+against); neither loops over faces in Python:
 
 1. **Clusters.** The faces are sorted along a Morton curve once and cut into clusters of ``CLUSTER`` faces, each
    with a bounding ball. A cluster whose ball lies beyond the SDF's bounds grown by the search margin, or whose
@@ -72,6 +73,7 @@ from .errors import InputError
 from .geometry import face_normals
 from .methods import iterations
 from .proxy import IN_BAND
+from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
 from .simplex import descent_segment, frank_wolfe_gap, on_simplex
 from .validation import as_pose_array, non_negative_float
 
@@ -165,13 +167,15 @@ class ProxyCollider:
         self._normal = face_normals(corners)  # (F, 3) unit, mesh frame (zeros: degenerate)
         lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64).cpu()).reshape(3) for b in proxy.bounds)
         self._lo, self._hi = lo, hi
+        self._mesh = SearchMesh(self._f, self._v, self._reach, self._ball, self._clusters, self._cluster_centre,
+                                self._cluster_radius)
         self._sdf_centre, self._sdf_radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2  # its bounding ball
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()
         if kernel == "numba":  # compiled (or loaded from numba's cache) now, not in the first step
             identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
-            self._compiled_search(identity[:3, :3], identity[:3, 3], self.margin, self.margin, CoherenceStats(),
-                                  n_clusters=0)
+            self._compiled_search(self._search_call(identity[:3, :3], identity[:3, 3], self.margin, self.margin,
+                                                    n_clusters=0), CoherenceStats())
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
@@ -208,10 +212,11 @@ class ProxyCollider:
         else:
             # the faces a motion of reuse_distance cannot bring within the search margin are left out of what is held
             net = search + self.proxy.lipschitz * self.reuse_distance
+            call = self._search_call(rotation, shift, search, net)
             if self.kernel == "numba":
-                found = self._compiled_search(rotation, shift, search, net, stats)
+                found = self._compiled_search(call, stats)
             else:
-                found = self._numpy_search(rotation, shift, search, net, stats)
+                found = numpy_search(call, self._mesh, self.proxy, self._memory(), stats)
             t1 = time.perf_counter()
             self._held = _Held(relative, search, found)
         if self.deferred and self.thin is not None:
@@ -268,21 +273,29 @@ class ProxyCollider:
         c = float(np.linalg.norm(turn @ at_centre + now[:3, 3] - then[:3, 3]))
         return a * (self._sdf_radius + search + c) / (1 - a) + c
 
-    # -- the compiled passes (zoo.proxy_kernel) --------------------------------------------------------------------
+    # -- the search (zoo.proxy_search, zoo.proxy_kernel) -------------------------------------------------------------
 
-    def _compiled_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats,
-                         n_clusters=None) -> ProxyAnswers:
-        """:meth:`_numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`) over the first
-        ``n_clusters`` clusters (default: all), passing over the faces held above the margin (``hold``); a lazy
-        proxy's bricks the reads met not ready are made ready and the call made again, until none is met."""
+    def _search_call(self, rotation, shift, search: float, net: float, n_clusters: int | None = None) -> SearchCall:
+        """A search at the pose (``rotation`` (3, 3), ``shift`` (3,): the mesh's in the SDF's frame) over the first
+        ``n_clusters`` clusters (default: all): the faces whose proxy minimum may be at most ``search`` are searched,
+        and those whose answer is at most ``net`` given."""
+        return SearchCall(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
+                          WARM_SEARCH_STEPS, len(self._clusters) if n_clusters is None else n_clusters, self._lo,
+                          self._hi, PATTERN[3:], self.hold, self._stamp)
+
+    def _memory(self) -> FaceMemory:
+        held = self._motion
+        return FaceMemory(self._last_bary, held.cluster_motion, held.cluster_key, held.face_key)
+
+    def _compiled_search(self, call: SearchCall, stats: CoherenceStats) -> ProxyAnswers:
+        """:func:`zoo.proxy_search.numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`), passing
+        over the faces held above the margin (``hold``); a lazy proxy's bricks the reads met not ready are made ready
+        and the call made again, until none is met."""
         from . import proxy_kernel as kernel
 
         if self._buffers is None:
-            self._kernel_mesh = kernel.KernelMesh(self._f, self._v, self._reach, self._ball, self._clusters,
-                                                  self._cluster_centre, self._cluster_radius)
             self._buffers = kernel.kernel_buffers(len(self._v), len(self._f))
-        out, held = self._buffers, self._motion
-        memory = kernel.FaceMemory(self._last_bary, held.cluster_motion, held.cluster_key, held.face_key)
+        out, held, memory = self._buffers, self._motion, self._memory()
         # a pass that met bricks not ready is made again from the same held bounds: the keys it wrote are dropped,
         # so that the answer is the one a proxy with every brick ready gives (not one that depends on the cache)
         kept_keys = None if self.proxy.complete else (held.cluster_key.copy(), held.face_key.copy())
@@ -292,10 +305,7 @@ class ProxyCollider:
                 held.cluster_key[:], held.face_key[:] = kept_keys
             self._stamp += 1
             out.counts[:] = 0
-            call = kernel.SearchCall(rotation, shift, search, net, CONVERGED_GAP * max(search, 1e-9), SEARCH_STEPS,
-                                     WARM_SEARCH_STEPS, len(self._clusters) if n_clusters is None else n_clusters,
-                                     self._lo, self._hi, PATTERN[3:], self.hold, self._stamp)
-            kernel.search_faces(call, self._kernel_mesh, self.proxy.grid(), memory, out)
+            kernel.search_faces(call._replace(stamp=self._stamp), self._mesh, self.proxy.grid(), memory, out)
             counts = out.counts[0]
             missed = int(counts["missing"])
             if not missed:
@@ -311,137 +321,6 @@ class ProxyCollider:
         n = int(counts["out"])
         return ProxyAnswers(out.face[:n].copy(), out.tri[:n].copy(), out.bary[:n].copy(), out.value[:n].copy(),
                             out.grad[:n].copy(), out.status[:n].copy())
-
-    def _numpy_search(self, rotation, shift, search: float, net: float, stats: CoherenceStats) -> ProxyAnswers:
-        """The faces whose proxy minimum is at most ``net``, with the proxy at their minima (see the module
-        docstring)."""
-        faces, values, grads, status, tri = self._near_faces(rotation, shift, search, stats)
-        bary, values, grads, status = self._search(faces, tri, values, grads, status, search, stats)
-        return ProxyAnswers(faces, tri, bary, values, grads, status).take(np.flatnonzero(values <= net))
-
-    # -- culling -------------------------------------------------------------------------------------------------
-
-    def _near_faces(self, rotation: np.ndarray, shift: np.ndarray, search: float, stats: CoherenceStats):
-        """The faces (N,) that may come within ``search`` of the SDF, and the proxy at their vertices: (faces, values
-        (N, 3), gradients (N, 3, 3), status (N, 3), vertices (N, 3, 3) in the SDF's frame): clusters first, then each
-        face on its vertices' values (see the module docstring)."""
-        centres = self._cluster_centre @ rotation.T + shift
-        kept = self._may_touch(centres, self._cluster_radius, search, stats)
-        faces = self._clusters[kept].reshape(-1)
-        faces = faces[faces >= 0]
-        stats.faces_near = int(faces.size)
-        corner_ids = self._f[faces]  # (N, 3)
-        used = np.zeros(len(self._v), dtype=bool)
-        used[corner_ids] = True
-        vertices = np.flatnonzero(used)
-        row = np.empty(len(self._v), dtype=np.int64)
-        row[vertices] = np.arange(vertices.size)
-        local = self._v[vertices] @ rotation.T + shift
-        f, g, status = self._read(local, stats)
-        corner = row[corner_ids]  # (N, 3) rows of ``vertices``
-        values = f[corner]
-        lip = self.proxy.lipschitz
-        bound = np.maximum((values - lip * self._reach[faces]).max(axis=1), values.min(axis=1) - lip * self._ball[faces])
-        near = bound <= search
-        stats.faces_skipped = int(faces.size - near.sum())
-        corner = corner[near]
-        return faces[near], values[near], g[corner], status[corner], local[corner]
-
-    def _may_touch(self, centres: np.ndarray, radii: np.ndarray, search: float, stats: CoherenceStats) -> np.ndarray:
-        """(N,) bool: the balls (centres (N, 3), radii (N,)) that may hold a point within ``search`` of the SDF."""
-        outside = np.linalg.norm(np.maximum(self._lo - centres, 0) + np.maximum(centres - self._hi, 0), axis=-1)
-        rows = np.flatnonzero(outside <= radii + search)
-        out = np.zeros(len(centres), dtype=bool)
-        if rows.size:
-            values = self._read(centres[rows], stats)[0]
-            out[rows] = values - self.proxy.lipschitz * radii[rows] <= search
-        return out
-
-    def _read(self, points: np.ndarray, stats: CoherenceStats):
-        stats.cell_queries += int(points.shape[0])
-        return self.proxy.read_numpy(points)
-
-    # -- the search on the proxy ---------------------------------------------------------------------------------
-
-    def _search(self, faces, tri, vertex_values, vertex_grads, vertex_status, search: float, stats: CoherenceStats):
-        """Each face's minimum on the proxy (see the module docstring), from the proxy at its vertices (values (S, 3),
-        gradients (S, 3, 3), status (S, 3)): bary (S, 3), values (S,), gradients (S, 3), status (S,) int8 there."""
-        s = len(faces)
-        stats.candidates = s
-        rows = np.arange(s)
-        lowest = vertex_values.argmin(axis=1)
-        bary = np.eye(3)[lowest]
-        value, grad, state = vertex_values[rows, lowest], vertex_grads[rows, lowest], vertex_status[rows, lowest]
-        # the vertex test: a lowest vertex that is a KKT point is the answer; the screen drops what stays above
-        gap = frank_wolfe_gap(tri, bary, grad)
-        stop = CONVERGED_GAP * max(search, 1e-9)
-        open_ = np.flatnonzero((gap > stop) & (value - gap <= search))
-        stats.screened = int(np.count_nonzero(value - gap > search))
-        if open_.size:
-            self._search_inside(faces[open_], tri[open_], open_, bary, value, grad, state, search, stats)
-        return bary, value, grad, state
-
-    def _search_inside(self, faces, tri, rows, bary, value, grad, state, search: float, stats: CoherenceStats) -> None:
-        """The search inside the faces ``faces`` (W,) (``rows`` (W,) of the arrays ``bary``, ``value``, ``grad``,
-        ``state``, which hold the lowest vertex's answer and are updated in place): from the last answer where the face
-        has one, else the lowest of the pattern's inner points, then up to ``SEARCH_STEPS`` descents."""
-        w = len(faces)
-        last = self._last_bary[faces]  # (W, 3), NaN where none
-        warm = np.isfinite(last[:, 0])
-        stats.warm, stats.cold = int(warm.sum()), int(w - warm.sum())
-        for chosen, starts in ((np.flatnonzero(warm), last[warm][:, None]),  # a warm face: its last answer
-                               (np.flatnonzero(~warm), PATTERN[None, 3:])):  # a cold one: the pattern inside it
-            if chosen.size:
-                self._lowest_start(tri[chosen], rows[chosen], np.broadcast_to(starts, (chosen.size,) + starts.shape[1:]),
-                                   bary, value, grad, state, stats)
-        active = np.arange(w)
-        stop = CONVERGED_GAP * max(search, 1e-9)
-        for step in range(SEARCH_STEPS):
-            if step == WARM_SEARCH_STEPS:
-                active = active[~warm[active]]
-            ra = rows[active]
-            gap = frank_wolfe_gap(tri[active], bary[ra], grad[ra])
-            active = active[(gap > stop) & (value[ra] - gap <= search) & (state[ra] == IN_BAND)]
-            if not active.size:
-                break
-            ra = rows[active]
-            b, v, gr, st = self._descend(tri[active], bary[ra], value[ra], grad[ra], stats)
-            lower = v < value[ra]
-            active, ra = active[lower], ra[lower]
-            bary[ra], value[ra], grad[ra], state[ra] = b[lower], v[lower], gr[lower], st[lower]
-        self._last_bary[faces] = bary[rows]
-
-    def _lowest_start(self, tri, rows, starts, bary, value, grad, state, stats) -> None:
-        """Read the proxy at the starts (W, K, 3) on the triangles (W, 3, 3), all in one read, and keep the lowest where
-        it is below the answer held in ``rows`` (W,) of ``bary``, ``value``, ``grad`` and ``state`` (updated in place)."""
-        w, k = starts.shape[:2]
-        f, g, status = self._read(np.einsum("wkv,wvc->wkc", starts, tri).reshape(-1, 3), stats)
-        f, g, status = f.reshape(w, k), g.reshape(w, k, 3), status.reshape(w, k)
-        best = f.argmin(axis=1)
-        at = np.arange(w)
-        lower = f[at, best] < value[rows]
-        r = rows[lower]
-        bary[r], value[r] = starts[at, best][lower], f[at, best][lower]
-        grad[r], state[r] = g[at, best][lower], status[at, best][lower]
-
-    def _descend(self, tri, bary, f0, g, stats):
-        """One line search along the steepest descent of the proxy inside each triangle (W, 3, 3) from ``bary`` (W, 3)
-        (f0 (W,) and g (W, 3) there), to where it leaves the triangle: -> bary, values, gradients, status at the lower
-        of its end and the parabola's minimiser (the parabola through f0, the slope and the end's value)."""
-        direction, reach = descent_segment(tri, bary, g)
-        end = on_simplex(bary + reach[:, None] * direction)
-        p0, p1 = np.einsum("wv,wvc->wc", bary, tri), np.einsum("wv,wvc->wc", end, tri)
-        f1, g1, s1 = self._read(p1, stats)
-        slope = ((p1 - p0) * g).sum(axis=1)  # < 0 along a descent
-        curvature = f1 - f0 - slope
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(curvature > 0, np.clip(-slope / (2 * curvature), 0, 1), 1.0)
-        t = np.where(np.isfinite(t), t, 0.0)
-        mid = on_simplex(bary + (t * reach)[:, None] * direction)
-        fm, gm, sm = self._read(np.einsum("wv,wvc->wc", mid, tri), stats)
-        end_lower = f1 < fm
-        pick = end_lower[:, None]
-        return (np.where(pick, end, mid), np.where(end_lower, f1, fm), np.where(pick, g1, gm), np.where(end_lower, s1, sm))
 
     # -- the SDF's own answers -----------------------------------------------------------------------------------
 
@@ -516,7 +395,7 @@ class ProxyCollider:
         direction, reach = descent_segment(tri, bary, g)
         t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
         along = on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
-        values = self._read(np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
+        values = counted_read(self.proxy, np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
         end = along[np.arange(len(tri)), values.argmin(axis=1)]
         return (end, *self._sdf_at(np.einsum("pv,pvc->pc", end, tri), stats))
 
@@ -674,29 +553,6 @@ class _HeldBounds:
             self.cluster_motion += (np.linalg.norm(centres @ turn.T + (relative[:3, 3] - self.relative[:3, 3]), axis=1)
                                     + np.linalg.norm(turn) * radii)
         self.relative = relative
-
-
-@dataclass
-class ProxyAnswers:
-    """The proxy's minima over faces, as a search leaves them: ``faces`` (N,) (the collider's order), their corners
-    ``tri`` (N, 3, 3) in the SDF's frame, the minimisers ``bary`` (N, 3), the proxy's ``values`` (N,), ``grads``
-    (N, 3) and ``status`` (N,) there."""
-
-    faces: np.ndarray
-    tri: np.ndarray
-    bary: np.ndarray
-    values: np.ndarray
-    grads: np.ndarray
-    status: np.ndarray
-
-    def take(self, rows: np.ndarray) -> ProxyAnswers:
-        """The answers at ``rows`` (K,), in that order."""
-        return ProxyAnswers(self.faces[rows], self.tri[rows], self.bary[rows], self.values[rows], self.grads[rows],
-                            self.status[rows])
-
-    def points(self) -> np.ndarray:
-        """(N, 3) the minimisers in the SDF's frame."""
-        return np.einsum("nv,nvc->nc", self.bary, self.tri)
 
 
 @dataclass

@@ -21,6 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .proxy_search import FaceMemory, SearchCall, SearchMesh  # noqa: F401 (the records search_faces takes)
+
 try:
     from numba import njit
 except ImportError as error:  # pragma: no cover - numba is a dependency of sdfzoo
@@ -36,48 +38,6 @@ TINY = np.finfo(np.float64).tiny
 COUNTS = np.dtype([("faces_near", np.int64), ("faces_skipped", np.int64), ("candidates", np.int64), ("warm", np.int64),
                    ("cold", np.int64), ("screened", np.int64), ("reads", np.int64), ("missing", np.int64),
                    ("searched", np.int64), ("out", np.int64)])
-
-
-class KernelMesh(NamedTuple):
-    """A collider's mesh as :func:`search_faces` reads it, in the mesh's frame, made once."""
-
-    faces: np.ndarray  # (F, 3) int64
-    vertices: np.ndarray  # (V, 3)
-    reach: np.ndarray  # (F, 3) zoo.bounds.triangle_reach: how far each corner reaches over the face
-    ball: np.ndarray  # (F,) the radius about the lowest corner that holds the face
-    clusters: np.ndarray  # (C, K) int64 faces of each cluster (-1 padding)
-    cluster_centre: np.ndarray  # (C, 3)
-    cluster_radius: np.ndarray  # (C,)
-
-
-class SearchCall(NamedTuple):
-    """One call of :func:`search_faces`: the pose and what the search stops at."""
-
-    rotation: np.ndarray  # (3, 3) the mesh's rotation in the SDF's frame
-    shift: np.ndarray  # (3,) its translation
-    search: float  # m: the search margin (a face whose proxy minimum may be at most this is searched)
-    net: float  # m: a face whose answer is at most this is written out
-    stop: float  # the Frank-Wolfe gap below which a search stops
-    search_steps: int  # the descents a cold face takes at most
-    warm_steps: int  # and a warm one
-    n_clusters: int  # the first clusters searched (the rest passed over)
-    bounds_lo: np.ndarray  # (3,) the SDF's bounds
-    bounds_hi: np.ndarray  # (3,)
-    pattern: np.ndarray  # (P, 3) a cold face's starting barycentrics
-    hold: bool  # whether faces are passed over on their held bounds (FaceMemory)
-    stamp: int  # this call's stamp (KernelBuffers.vertex_stamp)
-
-
-class FaceMemory(NamedTuple):
-    """What crosses calls: each face's last answer, the warm start, and the bounds that pass faces over
-    (``hold``). A face (a cluster) whose key, less L times its cluster's motion now, exceeds the search margin
-    cannot hold a contact and is passed over with no read; :func:`search_faces` updates the keys."""
-
-    last_bary: np.ndarray  # (F, 3) each face's last answer (NaN: none)
-    cluster_motion: np.ndarray  # (C,) m: how far each cluster's points have moved relative to the SDF, in all
-    cluster_key: np.ndarray  # (C,) the least of its faces' keys
-    face_key: np.ndarray  # (F,) its bound on the proxy's minimum when last answered, plus L times its cluster's
-    #                       motion then (-inf: none)
 
 
 class KernelBuffers(NamedTuple):
@@ -266,8 +226,8 @@ def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
 @njit(cache=True, error_model="numpy")
 def search_faces(call, mesh, grid, memory, out):
     """The cull and the search of one call (``ProxyCollider._near_faces`` then ``_search``, see its module docstring):
-    ``call`` a :class:`SearchCall`, ``mesh`` a :class:`KernelMesh`, ``grid`` the proxy (``zoo.proxy.ProxyGrid``),
-    ``memory`` the :class:`FaceMemory` it reads and updates, ``out`` the :class:`KernelBuffers` it writes."""
+    ``call`` a ``zoo.proxy_search.SearchCall``, ``mesh`` a ``SearchMesh``, ``grid`` the proxy (``zoo.proxy.ProxyGrid``),
+    ``memory`` the ``FaceMemory`` it reads and updates, ``out`` the :class:`KernelBuffers` it writes."""
     rotation, shift, search, net, stop = call.rotation, call.shift, call.search, call.net, call.stop
     search_steps, warm_steps, pattern, hold, stamp = call.search_steps, call.warm_steps, call.pattern, call.hold, call.stamp
     bounds_lo, bounds_hi, lipschitz = call.bounds_lo, call.bounds_hi, grid.lipschitz
