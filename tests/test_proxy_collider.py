@@ -136,7 +136,7 @@ def test_compiled_passes_answer_as_the_numpy_passes():
         torch.testing.assert_close(a.depths.double(), b.depths.double(), rtol=0, atol=1e-9)
         torch.testing.assert_close(a.points.double(), b.points.double(), rtol=0, atol=1e-9)
         sa, sb = colliders["numpy"].last_stats, colliders["numba"].last_stats
-        for count in ("faces_near", "faces_skipped", "candidates", "warm", "cold", "screened", "cell_queries"):
+        for count in ("faces_near", "faces_skipped", "candidates", "warm", "cold", "screened", "proxy_reads"):
             assert getattr(sa, count) == getattr(sb, count), count
         compared += len(a)
     assert compared > 50 and colliders["numba"].stats.warm > 0 and colliders["numba"].proxy.lazy_bricks > 0
@@ -164,7 +164,7 @@ def test_held_faces_are_those_that_hold_no_contact():
         compared += len(a)
     held, every = colliders[True].stats, colliders[False].stats
     assert compared > 50 and held.candidates < every.candidates and held.screened < every.screened / 1.5
-    assert held.cell_queries < 0.7 * every.cell_queries
+    assert held.proxy_reads < 0.7 * every.proxy_reads
 
 
 class CountingSphere:

@@ -45,6 +45,7 @@ class CoherenceStats:
         faces_near: faces whose box touches the SDF's bounds grown by the margin (collide's first cull, no query).
         faces_skipped: of those, faces proven above the margin by the carried bounds, with no query.
         cell_queries: SDF queries at cell centres (bounds for many vertices at once).
+        proxy_reads: with a proxy, the points the proxy was read at (culling and search).
         vertex_queries: SDF queries at mesh vertices.
         candidates: triangles that reached the narrow phase (collide's candidates).
         warm: of those, warm-started from their last barycentrics.
@@ -54,7 +55,7 @@ class CoherenceStats:
         screened: of the warm-started, those the screen put above the margin (one value-and-gradient query each, no
             descent: :func:`zoo.coherence.screen_bound`).
         exact_faces: with a proxy, the faces whose proxy minimum came within the margin plus the proxy's error bound,
-            answered by the SDF itself (all the counts above are then of proxy queries).
+            answered by the SDF itself (the counts above are then of the search on the proxy).
         exact_points: with a proxy, the points the SDF itself was asked at (values and gradients alike).
         exact_kept: of ``exact_faces``, those whose SDF answer was kept from an earlier step (no query).
         fallback: of ``exact_faces``, those whose proxy answer lay out of the proxy's band, solved from scratch on the SDF.
@@ -64,6 +65,7 @@ class CoherenceStats:
     faces_near: int = 0
     faces_skipped: int = 0
     cell_queries: int = 0
+    proxy_reads: int = 0
     vertex_queries: int = 0
     candidates: int = 0
     warm: int = 0

@@ -335,9 +335,9 @@ class ProxySDF:
         brick = cell >> 3
         try:  # the usual case, every point in the region (inside None): the flat brick index and the check in one call
             brick_flat = np.ravel_multi_index(brick.T, self._nb_dims)
-            inside, f = None, u - floor
+            inside, in_cell = None, u - floor
         except ValueError:  # some are outside it (or not finite)
-            inside, f = self._clip_to_region(p, u, cell)
+            inside, in_cell = self._clip_to_region(p, u, cell)
             brick = cell >> 3
             brick_flat = brick @ self._strides_np
         row = self._brick_of_np[brick_flat]
@@ -346,7 +346,7 @@ class ProxySDF:
         index = (cell & (BRICK - 1)) @ _LOCAL_STRIDES  # (N, 2): the cell in its brick, its first node there
         status = self._status_np[row * BRICK**3 + index[:, 0]]
         corners = self._nodes_np[_CORNER_OFFSETS + (row * NODES**3 + index[:, 1])]  # (8, N)
-        values, grads = _trilinear(corners.astype(p.dtype, copy=False), f, k.inv_h)
+        values, grads = _trilinear(corners.astype(p.dtype, copy=False), in_cell, k.inv_h)
         if inside is None and not status.any():
             return values, grads, status
         return self._out_of_band(p, k, brick, brick_flat, status, inside, values, grads)
@@ -718,9 +718,9 @@ def _grown(array: np.ndarray, size: int, fill) -> np.ndarray:
     return out
 
 
-def _trilinear(c: np.ndarray, f: np.ndarray, inv_h) -> tuple[np.ndarray, np.ndarray]:
+def _trilinear(c: np.ndarray, in_cell: np.ndarray, inv_h) -> tuple[np.ndarray, np.ndarray]:
     """The trilinear interpolant (N,) and its gradient (N, 3) of the corner values ``c`` (8, N) (corner 4i + 2j + k at
-    (i, j, k)) at ``f`` (N, 3), the points' places in their cells (of side 1 / ``inv_h``).
+    (i, j, k)) at ``in_cell`` (N, 3), the points' places in their cells (of side 1 / ``inv_h``).
 
     Lerps along z, then y, then x, each time the values and the derivatives so far together, into one buffer: a dozen
     numpy calls whatever N, each a contiguous row per corner (on a few points a call costs its overhead, about half a
@@ -729,17 +729,17 @@ def _trilinear(c: np.ndarray, f: np.ndarray, inv_h) -> tuple[np.ndarray, np.ndar
     buf = np.empty((3, 2, 4, n), dtype=c.dtype)
     z = buf[0]  # (d/dz, value) of the 4 edges along z, (x, y) x-major
     np.subtract(c[1::2], c[0::2], out=z[0])
-    np.multiply(z[0], f[:, 2], out=z[1])
+    np.multiply(z[0], in_cell[:, 2], out=z[1])
     z[1] += c[0::2]
     zy = z.reshape(4, 2, n)  # (d/dz at x0, at x1, value at x0, at x1) by y
     y = buf[1]
     np.subtract(zy[:, 1], zy[:, 0], out=y[0])
-    np.multiply(y[0], f[:, 1], out=y[1])
+    np.multiply(y[0], in_cell[:, 1], out=y[1])
     y[1] += zy[:, 0]
     yx = y.reshape(4, 2, n)  # (d2/dydz, d/dy, d/dz, value) by x
     x = buf[2]
     np.subtract(yx[:, 1], yx[:, 0], out=x[0])  # their d/dx: x[0, 3] the gradient's x
-    np.multiply(x[0], f[:, 0], out=x[1])
+    np.multiply(x[0], in_cell[:, 0], out=x[1])
     x[1] += yx[:, 0]  # (unused, d/dy, d/dz, value)
     grads = np.empty((n, 3), dtype=c.dtype)
     grads[:, 0] = x[0, 3]

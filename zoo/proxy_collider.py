@@ -41,7 +41,7 @@ at all (``stats.reused``): a persistent contact manifold, as the SDF's own answe
 Held faces (``hold``, the compiled passes). Each full search leaves every face it settled a bound on the proxy's
 minimum over it (its Lipschitz bound, the screen's or the search's answer less its Frank-Wolfe gap), and each
 cluster the least of its faces'; every call adds to each cluster how far its points can have moved relative to the
-SDF (:class:`_HeldBounds`). A face (a whole cluster) whose bound, less L times its motion since, stays above the
+SDF (:class:`_FaceBounds`). A face (a whole cluster) whose bound, less L times its motion since, stays above the
 search margin is passed over with no read: the faces far from the contacts cost nothing step after step, and the
 work goes where the bounds run out. A search that cannot move from a face's corner or along a needle moves towards
 Frank-Wolfe's vertex instead, so that such faces settle (and are held) rather than stay open.
@@ -183,10 +183,10 @@ class ProxyCollider:
         self._last_bary = np.full((n, 3), np.nan)  # (F, 3) each face's last proxy answer, the search's warm start (NaN: none)
         self._answers = _SDFAnswers.empty(n)  # the SDF's last answer per face
         self._pending = None  # the last call's proxy contacts (_ProxyContacts), for the SDF to answer
-        self._held = None  # the last full search's answers within its net (_Held), carried while the motion is small
+        self._carried = None  # the last full search's answers within its net (_CarriedSearch), carried while the motion is small
         self._buffers = None  # the compiled passes' buffers (zoo.proxy_kernel.KernelBuffers), made at their first call
         self._stamp = 0  # the compiled passes' last call (KernelBuffers.vertex_stamp)
-        self._motion = _HeldBounds.empty(len(self._clusters), n)  # how far each cluster moved, and the faces' bounds
+        self._bounds = _FaceBounds.empty(len(self._clusters), n)  # how far each cluster moved, and the faces' bounds
         self.last_candidates = torch.zeros(0, dtype=torch.int64)
 
     # -- a step --------------------------------------------------------------------------------------------------
@@ -202,12 +202,13 @@ class ProxyCollider:
         inverse[:3, :3], inverse[:3, 3] = sdf_pose[:3, :3].T, -sdf_pose[:3, :3].T @ sdf_pose[:3, 3]
         relative = inverse @ as_pose_array(mesh_pose, "mesh_pose")
         rotation, shift = relative[:3, :3], relative[:3, 3]
-        self._motion.move(relative, self._cluster_centre, self._cluster_radius)
+        self._bounds.move(relative, self._cluster_centre, self._cluster_radius)
         search = margin + self.proxy.error_bound
-        held = self._held
-        if held is not None and held.search == search and self._moved_at_most(held.relative, relative, search) <= self.reuse_distance:
+        carried = self._carried
+        if (carried is not None and carried.search == search
+                and self._moved_at_most(carried.relative, relative, search) <= self.reuse_distance):
             t1 = time.perf_counter()
-            found = held.carried(self._v[self._f[held.answers.faces]] @ rotation.T + shift)
+            found = carried.carried(self._v[self._f[carried.answers.faces]] @ rotation.T + shift)
             stats.reused = len(found.faces)
         else:
             # the faces a motion of reuse_distance cannot bring within the search margin are left out of what is held
@@ -218,7 +219,7 @@ class ProxyCollider:
             else:
                 found = numpy_search(call, self._mesh, self.proxy, self._memory(), stats)
             t1 = time.perf_counter()
-            self._held = _Held(relative, search, found)
+            self._carried = _CarriedSearch(relative, search, found)
         if self.deferred and self.thin is not None:
             found = found.take(self._thinned(sdf_pose, rotation, search, found))
         else:
@@ -284,8 +285,8 @@ class ProxyCollider:
                           self._hi, PATTERN[3:], self.hold, self._stamp)
 
     def _memory(self) -> FaceMemory:
-        held = self._motion
-        return FaceMemory(self._last_bary, held.cluster_motion, held.cluster_key, held.face_key)
+        bounds = self._bounds
+        return FaceMemory(self._last_bary, bounds.cluster_motion, bounds.cluster_key, bounds.face_key)
 
     def _compiled_search(self, call: SearchCall, stats: CoherenceStats) -> ProxyAnswers:
         """:func:`zoo.proxy_search.numpy_search` as one compiled loop (:func:`zoo.proxy_kernel.search_faces`), passing
@@ -295,14 +296,14 @@ class ProxyCollider:
 
         if self._buffers is None:
             self._buffers = kernel.kernel_buffers(len(self._v), len(self._f))
-        out, held, memory = self._buffers, self._motion, self._memory()
+        out, bounds, memory = self._buffers, self._bounds, self._memory()
         # a pass that met bricks not ready is made again from the same held bounds: the keys it wrote are dropped,
         # so that the answer is the one a proxy with every brick ready gives (not one that depends on the cache)
-        kept_keys = None if self.proxy.complete else (held.cluster_key.copy(), held.face_key.copy())
+        kept_keys = None if self.proxy.complete else (bounds.cluster_key.copy(), bounds.face_key.copy())
         retry = False
         while True:
             if retry:
-                held.cluster_key[:], held.face_key[:] = kept_keys
+                bounds.cluster_key[:], bounds.face_key[:] = kept_keys
             self._stamp += 1
             out.counts[:] = 0
             kernel.search_faces(call._replace(stamp=self._stamp), self._mesh, self.proxy.grid(), memory, out)
@@ -315,7 +316,7 @@ class ProxyCollider:
             retry = True
         stats.faces_near, stats.faces_skipped = int(counts["faces_near"]), int(counts["faces_skipped"])
         stats.candidates, stats.warm, stats.cold = int(counts["candidates"]), int(counts["warm"]), int(counts["cold"])
-        stats.screened, stats.cell_queries = int(counts["screened"]), stats.cell_queries + int(counts["reads"])
+        stats.screened, stats.proxy_reads = int(counts["screened"]), stats.proxy_reads + int(counts["reads"])
         searched = int(counts["searched"])
         self._last_bary[out.searched_face[:searched]] = out.searched_bary[:searched]
         n = int(counts["out"])
@@ -528,7 +529,7 @@ class _SDFAnswers:
 
 
 @dataclass
-class _HeldBounds:
+class _FaceBounds:
     """What lets the compiled passes pass over faces held above the margin (``ProxyCollider(hold=True)``): the
     relative pose (4, 4) of the last call (None: none yet), ``cluster_motion`` (C,) how far each cluster's points
     have moved relative to the SDF over the calls (m, the sum of each call's bound), ``cluster_key`` (C,) and
@@ -541,7 +542,7 @@ class _HeldBounds:
     face_key: np.ndarray
 
     @classmethod
-    def empty(cls, n_clusters: int, n_faces: int) -> _HeldBounds:
+    def empty(cls, n_clusters: int, n_faces: int) -> _FaceBounds:
         return cls(None, np.zeros(n_clusters), np.full(n_clusters, -np.inf), np.full(n_faces, -np.inf))
 
     def move(self, relative: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> None:
@@ -556,7 +557,7 @@ class _HeldBounds:
 
 
 @dataclass
-class _Held:
+class _CarriedSearch:
     """A full search's ``answers`` on the faces within its net: what later calls carry while the mesh moves less
     than ``reuse_distance`` relative to the SDF (a persistent contact manifold), their values moved to first order
     along their normals. ``relative``: the 4x4 SDF-from-mesh pose then; ``search``: the search margin then."""

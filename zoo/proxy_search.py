@@ -142,7 +142,8 @@ def _may_touch(call: SearchCall, proxy, centres: np.ndarray, radii: np.ndarray, 
 
 
 def counted_read(proxy, points: np.ndarray, stats: CoherenceStats):
-    stats.cell_queries += int(points.shape[0])
+    """``proxy.read_numpy(points)`` (points (N, 3): values, gradients, status), counted in ``stats.proxy_reads``."""
+    stats.proxy_reads += int(points.shape[0])
     return proxy.read_numpy(points)
 
 

@@ -304,10 +304,10 @@ class MeshPair(SurfacePair):
         if closing is not None and getattr(self.collider, "thin", None) is not None:
             self.collider.thin = replace(self.collider.thin, closing=closing)
         contacts = self.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
-        faces_world = self.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
+        mesh_normals = self.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
         if not self.deferred:  # a deferred pair's are named when the SDF answers them
             contacts.triangles = self.refined.surface_faces(contacts.triangles, contacts.bary)
-        return contacts, faces_world
+        return contacts, mesh_normals
 
 
 def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters, frame: str, surface,
@@ -400,9 +400,9 @@ def _collide_in_sdf_frame(pair: Pair, local: np.ndarray, faces: np.ndarray, orig
     world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
     contacts = zoo.collide(pair.sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin,
                            method=pair.settings.method_for(pair.sdf_body.sdf))
-    faces_world = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ t_sdf[:3, :3].T  # (K, 3)
+    mesh_normals = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ t_sdf[:3, :3].T  # (K, 3)
     contacts.triangles = torch.as_tensor(origin)[contacts.triangles]
-    return contacts, faces_world
+    return contacts, mesh_normals
 
 
 def _sdf_ball(sdf_body: SdfBody, t_sdf: np.ndarray) -> tuple[np.ndarray, float]:

@@ -72,7 +72,7 @@ TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within th
 @dataclass
 class PairContacts:
     """One pair's contacts at a step (world frame) and the rows of them MuJoCo can use: ``points`` (K, 3),
-    ``depths`` (K,), ``normals`` (K, 3) (the SDF's, as :func:`as_numpy` gives them), ``faces_world`` (K, 3) their
+    ``depths`` (K,), ``normals`` (K, 3) (the SDF's, as :func:`as_numpy` gives them), ``mesh_normals`` (K, 3) their
     mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows kept so far, ``reduced`` whether
     those are already the reduction's."""
 
@@ -81,7 +81,7 @@ class PairContacts:
     points: np.ndarray
     depths: np.ndarray
     normals: np.ndarray
-    faces_world: np.ndarray
+    mesh_normals: np.ndarray
     usable: np.ndarray
     reduced: bool = False
 
@@ -416,11 +416,11 @@ class World:
         found = []  # PairContacts of the pairs with contacts MuJoCo can use
         for pair, margin in near:
             if isinstance(pair, SegmentPair):
-                contacts, faces_world = segments.get(id(pair), (None, None))
+                contacts, mesh_normals = segments.get(id(pair), (None, None))
             else:
-                contacts, faces_world = pair.collide(poses[pair.sdf_body.body], pair.surface_pose(data), margin,
+                contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], pair.surface_pose(data), margin,
                                                      self._closing(pair, data, velocities))
-            usable = self._usable(pair, data, contacts, faces_world, velocities)
+            usable = self._usable(pair, data, contacts, mesh_normals, velocities)
             if usable is not None:
                 stats.raw_contacts += len(usable.depths)
                 found.append(self._reduced_on_proxy(usable))
@@ -456,7 +456,7 @@ class World:
         shift = a[:3] - b[:3] - np.cross(a[3:], data.xpos[pair.sdf_body.body]) + np.cross(b[3:], data.xpos[pair.body])
         return shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR
 
-    def _usable(self, pair: Pair, data, contacts, faces_world, velocities: dict) -> PairContacts | None:
+    def _usable(self, pair: Pair, data, contacts, mesh_normals, velocities: dict) -> PairContacts | None:
         """The pair's contacts with the rows MuJoCo can use, or None where there are none: facing their faces, and
         touching or closing within the step (a separated one beyond that would only brake the bodies at a distance).
         """
@@ -466,9 +466,9 @@ class World:
         points, depths, normals = as_numpy(contacts)
         motion_a = (data.xpos[sdf_body.body].copy(), velocities[sdf_body.body])
         motion_b = (data.xpos[pair.body].copy(), velocities[pair.body])
-        usable = facing_faces(normals, faces_world, depths) & closing_in_time(
+        usable = facing_faces(normals, mesh_normals, depths) & closing_in_time(
             points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
-        return PairContacts(pair, contacts, points, depths, normals, faces_world, np.nonzero(usable)[0])
+        return PairContacts(pair, contacts, points, depths, normals, mesh_normals, np.nonzero(usable)[0])
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
@@ -483,7 +483,7 @@ class World:
         keep = found.usable
         if not self.reduce or not len(keep):
             return keep
-        return keep[reduce_contacts(found.points[keep], found.depths[keep], found.normals[keep], found.faces_world[keep],
+        return keep[reduce_contacts(found.points[keep], found.depths[keep], found.normals[keep], found.mesh_normals[keep],
                                     merge_tol=found.pair.sdf_body.merge_distance)]
 
     @staticmethod
@@ -502,9 +502,9 @@ class World:
             asked = found[i]
             # the answers keep the asked rows' order, less those beyond the margin; a call answers a face once
             answered = np.isin(np.asarray(asked.contacts.triangles)[asked.usable], np.asarray(contacts.triangles))
-            faces_world = asked.faces_world[asked.usable[answered]]
+            mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
-            found[i] = PairContacts(asked.pair, contacts, *as_numpy(contacts), faces_world, np.arange(len(contacts)),
+            found[i] = PairContacts(asked.pair, contacts, *as_numpy(contacts), mesh_normals, np.arange(len(contacts)),
                                     asked.reduced)
         return found
 
