@@ -4,14 +4,16 @@ Runs a scenario of benches/sim_scenarios.py on its default path (the proxy) twic
 the bricks its run needs, and times the second's steps, each split into nested phases by timers wrapped around the
 functions that make them (the wrapping adds about a microsecond a call):
 
-- ``step``: the whole step (MuJoCo's included); ``detect``: sdfzoo's contact detection (``World._detect``);
+- ``step``: the whole step (MuJoCo's included); ``contacts``: sdfzoo's detection and the contacts added to MuJoCo
+  (``World.add_contacts``);
 - ``proxy call``: the proxy collider's call (``ProxyCollider.__call__``), of which ``compiled loop``
   (``zoo.proxy_kernel.search_faces``);
-- ``SDF answers``: the NeuralSDF's answers to the contacts kept (``ProxyCollider._answer``), of which
-  ``NeuralSDF queries`` (``ProxyCollider._sdf_at``);
-- ``filters and reduction``: the contacts MuJoCo can use and their reduction (``World._usable``), of which
-  ``reduction`` (``reduce_contacts``).
+- ``SDF answers``: the NeuralSDF's answers to the contacts kept (``zoo.proxy_collider.exact_contacts_together``), of
+  which ``NeuralSDF queries`` (a NeuralShape's ``value_and_grad_few`` and ``value_and_grad``);
+- ``filters``: the contacts MuJoCo can use (``facing_faces``, ``closing_in_time``); ``reduction``: their reduction
+  (``reduce_contacts``).
 
+Only public functions are wrapped.
 ``--refine N`` subdivides the fixed meshes N times first (4x their faces each), as ``investigations proxy --refine``.
 One torch thread, as in ``zoo bench --sim``:
 
@@ -29,14 +31,14 @@ import torch
 
 from investigations.report import write_report
 
-PHASES = {  # label: (module, owner's name or None for a module function, function)
-    "detect": ("zoo.sim.world", "World", "_detect"),
-    "proxy call": ("zoo.proxy_collider", "ProxyCollider", "__call__"),
-    "compiled loop": ("zoo.proxy_kernel", None, "search_faces"),
-    "SDF answers": ("zoo.proxy_collider", "ProxyCollider", "_answer"),
-    "NeuralSDF queries": ("zoo.proxy_collider", "ProxyCollider", "_sdf_at"),
-    "filters and reduction": ("zoo.sim.world", "World", "_usable"),
-    "reduction": ("zoo.sim.world", None, "reduce_contacts"),
+PHASES = {  # label: [(module, owner's name or None for a module function, function)]: public names only
+    "contacts": [("zoo.sim.world", "World", "add_contacts")],
+    "proxy call": [("zoo.proxy_collider", "ProxyCollider", "__call__")],
+    "compiled loop": [("zoo.proxy_kernel", None, "search_faces")],
+    "SDF answers": [("zoo.proxy_collider", None, "exact_contacts_together")],
+    "NeuralSDF queries": [("zoo.neural", "NeuralShape", "value_and_grad_few"), ("zoo.neural", "NeuralShape", "value_and_grad")],
+    "filters": [("zoo.sim.world", None, "facing_faces"), ("zoo.sim.world", None, "closing_in_time")],
+    "reduction": [("zoo.sim.world", None, "reduce_contacts")],
 }
 
 
@@ -46,7 +48,7 @@ def timed(spent: dict):
     import importlib
 
     originals = []
-    for label, (module_name, owner_name, name) in PHASES.items():
+    for label, module_name, owner_name, name in ((label, *f) for label, fs in PHASES.items() for f in fs):
         module = importlib.import_module(module_name)
         owner = getattr(module, owner_name) if owner_name else module
         original = getattr(owner, name)
