@@ -74,6 +74,7 @@ from .geometry import face_normals
 from .methods import iterations
 from .proxy import IN_BAND
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
+from .sdf import value_and_grad_numpy
 from .simplex import descent_segment, frank_wolfe_gap, on_simplex
 from .validation import as_pose_array, non_negative_float
 
@@ -403,13 +404,7 @@ class ProxyCollider:
     def _sdf_at(self, points: np.ndarray, stats: CoherenceStats) -> tuple[np.ndarray, np.ndarray]:
         """The SDF's values (N,) and gradients (N, 3), float64, at ``points`` (N, 3) in its frame, in one query."""
         stats.exact_points += len(points)
-        few = getattr(self.sdf, "value_and_grad_few", None)  # a NeuralSDF's numpy network: no torch round trip
-        answer = few(points, self._dtype) if few is not None else None
-        if answer is not None:
-            return answer[0].astype(np.float64), answer[1].astype(np.float64)
-        with torch.no_grad():
-            f, g = self.sdf.value_and_grad(torch.from_numpy(points).to(self._dtype))
-        return torch.as_tensor(f).reshape(-1).double().numpy(), torch.as_tensor(g).reshape(-1, 3).double().numpy()
+        return value_and_grad_numpy(self.sdf, points, self._dtype)
 
     def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> Contacts:
         """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
+import numpy as np
 import torch
 
 from .errors import InputError
@@ -47,6 +48,20 @@ def autograd_value_and_grad(fn, points: torch.Tensor) -> tuple[torch.Tensor, tor
         d = fn(x)
         (g,) = torch.autograd.grad(d.sum(), x)
     return d.detach(), g.detach()
+
+
+def value_and_grad_numpy(sdf, points: np.ndarray, dtype: torch.dtype = torch.float32) -> tuple[np.ndarray, np.ndarray]:
+    """``sdf``'s values (N,) and gradients (N, 3), float64 numpy, at ``points`` (N, 3) numpy, asked in ``dtype``: through
+    its numpy network where it has one for so few points (a NeuralShape's ``value_and_grad_few``: no torch round
+    trip, whose fixed cost is most of a small query's), else through ``value_and_grad``. For colliders that ask a
+    handful of points many times a step."""
+    few = getattr(sdf, "value_and_grad_few", None)
+    answer = few(points, dtype) if few is not None else None
+    if answer is not None:
+        return answer[0].astype(np.float64), answer[1].astype(np.float64)
+    with torch.no_grad():
+        f, g = sdf.value_and_grad(torch.from_numpy(np.ascontiguousarray(points)).to(dtype))
+    return torch.as_tensor(f).reshape(-1).double().cpu().numpy(), torch.as_tensor(g).reshape(-1, 3).double().cpu().numpy()
 
 
 class SDFBase:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..geometry import edge_lengths, faces_touching_box
+from ..geometry import cross, edge_lengths, faces_touching_box
 
 PATCH_COS = math.cos(math.radians(20.0))  # faces within 20 degrees of a patch's deepest contact's face join it
 FLAT_COS = math.cos(math.radians(5.0))  # a patch's extra points: SDF normals within 5 degrees of its deepest's
@@ -387,9 +387,9 @@ def _area_gain(flat: np.ndarray, polygon: np.ndarray, normal: np.ndarray) -> np.
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """(K, 3) unit normals -> (K, 9) contact frames: normal, then two unit tangents (right-handed)."""
     helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(normals, helper)
+    t1 = cross(normals, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(normals, t1)
+    t2 = cross(normals, t1)
     return np.concatenate([normals, t1, t2], axis=1)
 
 
@@ -408,7 +408,7 @@ def closing_in_time(points: np.ndarray, depths: np.ndarray, normals: np.ndarray,
     """
     def point_velocity(motion):
         origin, velocity = motion
-        return velocity[:3] + np.cross(velocity[3:], points - origin)
+        return velocity[:3] + cross(velocity[3:], points - origin)
 
     closing = np.einsum("ij,ij->i", point_velocity(sdf_motion) - point_velocity(mesh_motion), normals)
     return (depths <= 0) | (closing * dt * factor >= depths)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -41,7 +42,8 @@ FLAT_WIDTH_CELLS = 0.5
 
 @dataclass
 class SdfBody:
-    """A body of the model whose collision shape is an SDF (in the body's frame).
+    """A body of the model whose collision shape is an SDF (in the body's frame); its box's measures are computed once
+    (a step asks them of every pair).
 
     Attributes:
         name, body: its name and id in the model.
@@ -60,25 +62,35 @@ class SdfBody:
     hi: np.ndarray
     types: tuple[int, int]
 
-    @property
+    @cached_property
     def reach(self) -> float:
         """The farthest a point of its box lies from the body's origin."""
         return float(np.linalg.norm(np.maximum(np.abs(self.lo), np.abs(self.hi))))
 
-    @property
+    @cached_property
     def max_edge(self) -> float:
         """The longest mesh edge refinement leaves near it (a thin plate: its side, not its thickness)."""
         return float(np.median(self.hi - self.lo)) / REFINE_CELLS
 
-    @property
+    @cached_property
     def merge_distance(self) -> float:
         """m: the reduction's ``merge_tol`` for the contacts of its pairs."""
         return MERGE_FRACTION * float((self.hi - self.lo).min())
 
-    @property
+    @cached_property
     def flat_width(self) -> float:
         """m: the widest face the flat-region pass makes for its pairs (``FLAT_WIDTH_CELLS`` cells)."""
         return FLAT_WIDTH_CELLS * MERGE_CELL * self.merge_distance
+
+    @cached_property
+    def box_centre(self) -> np.ndarray:
+        """(3,) the centre of its box, body frame."""
+        return (self.lo + self.hi) / 2
+
+    @cached_property
+    def box_radius(self) -> float:
+        """The radius of the ball about ``box_centre`` that holds its box."""
+        return float(np.linalg.norm(self.hi - self.lo)) / 2
 
 
 @dataclass(frozen=True)
@@ -148,8 +160,8 @@ class Pair:
         """Whether the balls around the two sides (poses ``t_sdf``, ``t_other`` (4, 4)) are more than ``margin``
         apart: no contact, nothing to query."""
         centre, radius = _sdf_ball(self.sdf_body, t_sdf)
-        other = t_other[:3, :3] @ self.centre + t_other[:3, 3]
-        return float(np.linalg.norm(centre - other)) - radius - self.bounding_radius > margin
+        gap = centre - (t_other[:3, :3] @ self.centre + t_other[:3, 3])
+        return math.sqrt(gap @ gap) - radius - self.bounding_radius > margin
 
     def collide(self, t_sdf: np.ndarray, t_other: np.ndarray, margin: float, closing=None):
         """Its contacts at the poses ``t_sdf``, ``t_other`` (4, 4) within ``margin``: (zoo.Contacts in the world
@@ -224,11 +236,11 @@ class SurfacePair(Pair):
     hi: np.ndarray
     settings: PairSettings
 
-    @property
+    @cached_property
     def bounding_radius(self) -> float:
         return float(np.linalg.norm(self.hi - self.lo)) / 2
 
-    @property
+    @cached_property
     def centre(self) -> np.ndarray:
         return (self.lo + self.hi) / 2
 
@@ -344,27 +356,27 @@ def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters
     return MeshPair(**common, **box, refined=refined_mesh, collider=collider)
 
 
-def segment_contacts(near: list[tuple[SegmentPair, float]], data) -> dict:
+def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) -> dict:
     """Spheres' and capsules' contacts in closed form, every such pair of a step together (one set of queries per
     SDF body): {id(pair): (contacts in the world frame, their normals as the faces' normals)} for the pairs of
-    ``near`` ((pair, its margin) each) that touch or come within their margin. A pair's contacts are its axis
+    ``near`` ((pair, its margin, its geom's pose (4, 4)) each) that touch or come within their margin. A pair's contacts are its axis
     segment's points of least f (:func:`zoo.sim.segments.segment_minima`), each at depth f - radius along the SDF's
     normal there."""
     found = {}
     by_body: dict[str, list] = {}
-    for pair, margin in near:
-        by_body.setdefault(pair.sdf_body.name, []).append((pair, margin))
+    for pair, margin, t_geom in near:
+        by_body.setdefault(pair.sdf_body.name, []).append((pair, margin, t_geom))
     for pairs in by_body.values():
         sdf_body, proxy = pairs[0][0].sdf_body, pairs[0][0].proxy
         t_sdf = body_pose(data, sdf_body.body)
         sdf_from_world = invert_pose(torch.from_numpy(t_sdf)).numpy()
         ends = []
-        for pair, _ in pairs:
-            t_geom = sdf_from_world @ pair.surface_pose(data)
-            axis = t_geom[:3, 2] * pair.half_length
-            ends.append((t_geom[:3, 3] - axis, t_geom[:3, 3] + axis))
-        radii = np.array([pair.radius for pair, _ in pairs])
-        margins = np.array([margin for _, margin in pairs])
+        for pair, _, t_geom in pairs:
+            local = sdf_from_world @ t_geom
+            axis = local[:3, 2] * pair.half_length
+            ends.append((local[:3, 3] - axis, local[:3, 3] + axis))
+        radii = np.array([pair.radius for pair, _, _ in pairs])
+        margins = np.array([margin for _, margin, _ in pairs])
         dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
         lower_bound = None if proxy is None else (lambda p, proxy=proxy: proxy.read_numpy(p)[0] - proxy.error_bound)
         minima = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
@@ -376,7 +388,7 @@ def segment_contacts(near: list[tuple[SegmentPair, float]], data) -> dict:
         normals = grads / np.where(length > 0, length, 1.0)
         depths = values - radii[owner]
         rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
-        for index, (pair, margin) in enumerate(pairs):
+        for index, (pair, margin, _) in enumerate(pairs):
             rows = np.nonzero((owner == index) & (depths <= margin))[0]
             if not len(rows):
                 continue
@@ -407,8 +419,7 @@ def _collide_in_sdf_frame(pair: Pair, local: np.ndarray, faces: np.ndarray, orig
 
 def _sdf_ball(sdf_body: SdfBody, t_sdf: np.ndarray) -> tuple[np.ndarray, float]:
     """The world centre (3,) and radius of the ball about the SDF's box at pose ``t_sdf``."""
-    centre = t_sdf[:3, :3] @ ((sdf_body.lo + sdf_body.hi) / 2) + t_sdf[:3, 3]
-    return centre, float(np.linalg.norm(sdf_body.hi - sdf_body.lo)) / 2
+    return t_sdf[:3, :3] @ sdf_body.box_centre + t_sdf[:3, 3], sdf_body.box_radius
 
 
 def _plane_patch(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:

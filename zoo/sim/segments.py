@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..sdf import value_and_grad_numpy
+
 SEGMENT_SAMPLES = 9  # points along a capsule's axis where f is read before the search narrows around the lowest
 SEGMENT_STEPS = 2  # steps in the bracket the samples leave: each one query (two points a segment) for all segments
 SEGMENT_LIPSCHITZ = 2.0  # |grad f| bound used to drop a segment from its samples (a learned SDF's, zoo.coherence's)
@@ -139,8 +141,6 @@ def _along(sdf, a: np.ndarray, axis: np.ndarray, at: np.ndarray, dtype: torch.dt
     """f, its slope df/dt and its gradient at the points ``a + at * axis`` of each segment: a (S, 3), axis (S, 3),
     at (S, k) -> (S, k), (S, k), (S, k, 3), one query."""
     points = a[:, None] + at[..., None] * axis[:, None]
-    with torch.no_grad():
-        values, grads = sdf.value_and_grad(torch.as_tensor(points.reshape(-1, 3), dtype=dtype))
-    values = torch.as_tensor(values).double().cpu().numpy().reshape(at.shape)
-    grads = torch.as_tensor(grads).double().cpu().numpy().reshape(*at.shape, 3)
+    values, grads = value_and_grad_numpy(sdf, points.reshape(-1, 3), dtype)
+    values, grads = values.reshape(at.shape), grads.reshape(*at.shape, 3)
     return values, np.einsum("skc,sc->sk", grads, axis), grads

@@ -29,6 +29,7 @@ robot's many geoms far from the object cost a few microseconds each.
 
 from __future__ import annotations
 
+import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -40,6 +41,7 @@ import torch
 import zoo
 
 from ..errors import InputError
+from ..geometry import cross
 from ..validation import non_negative_float
 from .contacts import (
     add_contacts,
@@ -397,7 +399,7 @@ class World:
         deepest = 0.0
         velocities: dict[int, np.ndarray] = {}
         poses: dict[int, np.ndarray] = {}
-        near = []  # (pair, its margin this step): the pairs the bounding balls cannot rule out
+        near = []  # (pair, its margin this step, its surface's pose): the pairs the bounding balls cannot rule out
         for pair in self.pairs:
             for body in (pair.sdf_body.body, pair.body):
                 if body not in velocities:
@@ -407,19 +409,20 @@ class World:
             closing = self._closing_distance(pair, data, velocities)
             if closing > margin:  # would cross the margin in one step: see it coming
                 margin = SPECULATIVE_FACTOR * closing
-            if pair.apart(poses[pair.sdf_body.body], pair.surface_pose(data), margin):
+            t_other = pair.surface_pose(data)
+            if pair.apart(poses[pair.sdf_body.body], t_other, margin):
                 continue
             stats.margin = max(stats.margin, margin)
             stats.speculative |= closing > max(self.margin, pair.params.margin)
-            near.append((pair, margin))
-        segments = segment_contacts([(p, m) for p, m in near if isinstance(p, SegmentPair)], data)
+            near.append((pair, margin, t_other))
+        segments = segment_contacts([n for n in near if isinstance(n[0], SegmentPair)], data)
         found = []  # PairContacts of the pairs with contacts MuJoCo can use
-        for pair, margin in near:
+        for pair, margin, t_other in near:
             if isinstance(pair, SegmentPair):
                 contacts, mesh_normals = segments.get(id(pair), (None, None))
             else:
-                contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], pair.surface_pose(data), margin,
-                                                     self._closing(pair, data, velocities))
+                contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], t_other, margin,
+                                                      self._closing(pair, data, velocities))
             usable = self._usable(pair, data, contacts, mesh_normals, velocities)
             if usable is not None:
                 stats.raw_contacts += len(usable.depths)
@@ -445,15 +448,15 @@ class World:
         """
         a, b = velocities[pair.sdf_body.body], velocities[pair.body]
         reach = pair.sdf_body.reach
-        lever = reach + float(np.linalg.norm(data.xpos[pair.sdf_body.body] - data.xpos[pair.body]))
-        linear = float(np.linalg.norm(a[:3] - b[:3]))
-        return (linear + reach * float(np.linalg.norm(a[3:])) + lever * float(np.linalg.norm(b[3:]))) * self.model.opt.timestep
+        lever = reach + _length(data.xpos[pair.sdf_body.body] - data.xpos[pair.body])
+        linear = _length(a[:3] - b[:3])
+        return (linear + reach * _length(a[3:]) + lever * _length(b[3:])) * self.model.opt.timestep
 
     def _closing(self, pair: Pair, data, velocities: dict) -> tuple:
         """The pair's relative motion this step, as a collider that thins its contacts tests it
         (``zoo.proxy_collider.Thinning.closing``, what :func:`closing_in_time` tests in :meth:`_usable`)."""
         a, b = velocities[pair.sdf_body.body], velocities[pair.body]
-        shift = a[:3] - b[:3] - np.cross(a[3:], data.xpos[pair.sdf_body.body]) + np.cross(b[3:], data.xpos[pair.body])
+        shift = a[:3] - b[:3] - cross(a[3:], data.xpos[pair.sdf_body.body]) + cross(b[3:], data.xpos[pair.body])
         return shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR
 
     def _usable(self, pair: Pair, data, contacts, mesh_normals, velocities: dict) -> PairContacts | None:
@@ -515,6 +518,11 @@ def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
     from .model import mesh_arrays
 
     return mesh_arrays(mesh, "surface")
+
+
+def _length(v: np.ndarray) -> float:
+    """|v| of a 3-vector (``np.linalg.norm``'s checks cost more than its arithmetic here)."""
+    return math.sqrt(float(v @ v))
 
 
 def _select(contacts, keep: np.ndarray):
