@@ -12,7 +12,7 @@ path (amortized from scratch, ``coherence=False``, the reference), each in its o
 - ``mug-drop-5cm``: the same mug dropped from 5 cm onto the rack, 0.4 s.
 
 Reports per scene and path the deepest penetration (the path's own contacts; the nut's over steps 40-60, the
-mug's over the whole run) and the median over those steps of a step's deepest, where the tracked body ends (the nut along the bolt, the mug's position), the time per
+mug's over the whole run) and the median over those steps of a step's deepest and of its contacts, where the tracked body ends (the nut along the bolt, the mug's position), the time per
 step, and each proxy path against the full path.
 
     python -m investigations fidelity --out out/fidelity.json
@@ -51,16 +51,17 @@ if nut:
     i = sim.bodies["nut"].body_id
     sim.model.body_mass[i] *= options["mass"]
     sim.model.body_inertia[i] *= options["mass"]
-deepest, started = [], time.perf_counter()
+deepest, contacts, started = [], [], time.perf_counter()
 for _ in range(steps):
     if nut:
         spin = float(sim.velocity("nut")[5])
         sim.data.xfrc_applied[i, 3:] = (0.0, 0.0, options["torque"] * NUT_TORQUE + NUT_KV * (options["speed"] * NUT_SPEED - spin))
     sim.step()
     deepest.append(sim.log[-1].max_penetration)
+    contacts.append(sim.log[-1].contacts)
 wall = time.perf_counter() - started
 print(json.dumps({"deepest_mm": 1e3 * max(deepest[lo:hi]), "median_deepest_mm": 1e3 * float(np.median(deepest[lo:hi])),
-                  "end_m": sim.pose(body)[:3, 3].tolist(),
+                  "median_contacts": float(np.median(contacts[lo:hi])), "end_m": sim.pose(body)[:3, 3].tolist(),
                   "ms_per_step": 1e3 * wall / steps}))
 """
 
