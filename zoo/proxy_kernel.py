@@ -21,8 +21,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .proxy_search import FaceMemory, SearchCall, SearchMesh  # noqa: F401 (the records search_faces takes)
-
 try:
     from numba import njit
 except ImportError as error:  # pragma: no cover - numba is a dependency of sdfzoo

@@ -42,10 +42,7 @@ def plane_descent(tri, bary, g, boundary: float = BOUNDARY):
     count = (blocked * 1).sum(-1)
     # on one edge (the coordinate i at 0): the descent along that edge, from vertex j = i + 1 to k = i + 2
     i = (blocked * 1).argmax(-1)
-    corners = _arange3(xp, tri)
-    to_k = (corners == ((i + 2) % 3)[:, None]) * 1.0
-    from_j = (corners == ((i + 1) % 3)[:, None]) * 1.0
-    on_edge = (to_k - from_j).astype(tri.dtype) if xp is np else (to_k - from_j).to(tri.dtype)
+    on_edge = _one_hot(xp, (i + 2) % 3, tri) - _one_hot(xp, (i + 1) % 3, tri)
     edge = xp.einsum("wv,wvc->wc", on_edge, tri)
     along = -(g * edge).sum(-1) / (edge * edge).sum(-1).clip(xp.finfo(tri.dtype).tiny)
     direction = xp.where((count == 1)[:, None], along[:, None] * on_edge, direction)
@@ -65,8 +62,7 @@ def descent_segment(tri, bary, g, boundary: float = BOUNDARY):
     stuck = reach * xp.amax(xp.abs(direction), -1) <= 0
     if stuck.any():
         vertex = xp.einsum("wvc,wc->wv", tri[stuck], g[stuck]).argmin(-1)
-        towards = (_arange3(xp, tri) == vertex[:, None]) * 1.0
-        direction[stuck] = (towards.astype(tri.dtype) if xp is np else towards.to(tri.dtype)) - bary[stuck]
+        direction[stuck] = _one_hot(xp, vertex, tri) - bary[stuck]
         reach[stuck] = 1.0
     return direction, reach
 
@@ -81,9 +77,11 @@ def _namespace(array):
     return torch if isinstance(array, torch.Tensor) else np
 
 
-def _arange3(xp, like):
-    """(3,) the corners' indices, where ``like`` is (its device)."""
-    return np.arange(3) if xp is np else torch.arange(3, device=like.device)
+def _one_hot(xp, corner, like):
+    """(W, 3) the unit barycentric coordinates of the corners ``corner`` (W,), in ``like``'s dtype (and device)."""
+    if xp is np:
+        return (np.arange(3) == corner[:, None]).astype(like.dtype)
+    return (torch.arange(3, device=like.device) == corner[:, None]).to(like.dtype)
 
 
 __all__ = ["BOUNDARY", "frank_wolfe_gap", "plane_descent", "descent_segment", "on_simplex"]

@@ -38,6 +38,8 @@ PREREFINE_MAX_FACES = 200_000
 # a face merged where the mesh is flat is at most this many of the reduction's cells wide: the reduction keeps one
 # contact per cell and a face gives one at most, so wider faces leave a flat support too few contacts
 FLAT_WIDTH_CELLS = 0.5
+_ORIGIN = np.zeros(3)
+_ORIGIN.setflags(write=False)  # shared by every pair whose surface frame is centred
 
 
 @dataclass
@@ -137,7 +139,7 @@ class Pair:
     @property
     def centre(self) -> np.ndarray:
         """The centre (3,) of the surface's box, in its frame."""
-        return np.zeros(3)
+        return _ORIGIN
 
     @property
     def deferred(self) -> bool:

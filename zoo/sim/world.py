@@ -421,8 +421,8 @@ class World:
             if isinstance(pair, SegmentPair):
                 contacts, mesh_normals = segments.get(id(pair), (None, None))
             else:
-                contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], t_other, margin,
-                                                      self._closing(pair, data, velocities))
+                closing = self._closing(pair, data, velocities) if pair.deferred else None  # a thinning's test
+                contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], t_other, margin, closing)
             usable = self._usable(pair, data, contacts, mesh_normals, velocities)
             if usable is not None:
                 stats.raw_contacts += len(usable.depths)
