@@ -10,7 +10,7 @@ functions that make them (the wrapping adds about a microsecond a call):
   (``zoo.proxy_kernel.search_faces``);
 - ``SDF answers``: the NeuralSDF's answers to the contacts kept (``zoo.proxy_collider.exact_contacts_together``), of
   which ``NeuralSDF queries`` (a NeuralShape's ``value_and_grad_few`` and ``value_and_grad``);
-- ``filters``: the contacts MuJoCo can use (``facing_faces``, ``closing_in_time``); ``reduction``: their reduction
+- ``filters``: the contacts MuJoCo can use (``zoo.contact_filters.usable_rows``); ``reduction``: their reduction
   (``reduce_contacts``).
 
 Only public functions are wrapped.
@@ -37,7 +37,7 @@ PHASES = {  # label: [(module, owner's name or None for a module function, funct
     "compiled loop": [("zoo.proxy_kernel", None, "search_faces")],
     "SDF answers": [("zoo.proxy_collider", None, "exact_contacts_together")],
     "NeuralSDF queries": [("zoo.neural", "NeuralShape", "value_and_grad_few"), ("zoo.neural", "NeuralShape", "value_and_grad")],
-    "filters": [("zoo.sim.world", None, "facing_faces"), ("zoo.sim.world", None, "closing_in_time")],
+    "filters": [("zoo.sim.world", None, "usable_rows")],
     "reduction": [("zoo.sim.world", None, "reduce_contacts")],
 }
 

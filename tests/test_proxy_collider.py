@@ -236,12 +236,15 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
     """A deferred collider with a Thinning against the same collider without: a sphere sliding, turning and sinking
     over a plane of long thin faces (contacts that face their faces and contacts that do not, separated contacts the
     bodies close in time and ones they do not) gives, at every step, per cell of the world's grid the contacts
-    within the band (none, or twice the proxy's error bound) of the deepest of those that zoo.sim.contacts'
-    facing_faces and closing_in_time let through, as a dictionary picks them from every contact; and the reduction
+    within the band (none, or twice the proxy's error bound) of the deepest of those that the numpy filters
+    (tests/naive_filters.py) let through, as a dictionary picks them from every contact; and the reduction
     a simulation makes keeps the same contacts from either."""
+    from naive_filters import closing_in_time, facing_faces
+
+    from zoo.contact_filters import GRAZING_COS, SEPARATED_COS, Closing
     from zoo.geometry import face_normals
     from zoo.proxy_collider import Thinning
-    from zoo.sim.contacts import GRAZING_COS, SEPARATED_COS, closing_in_time, facing_faces, reduce_contacts
+    from zoo.sim.contacts import reduce_contacts
 
     sphere = zoo.Sphere(0.05)
     vertices, faces = plane_mesh(max_edge=0.004)
@@ -263,12 +266,12 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
         sdf_pose = pose(rotation((0.3, 0.2, 1), 0.05 * step), off + (4e-4 * step, -2e-4 * step, 0.0495 - 1e-4 * step))
         origin = sdf_pose[:3, 3]
         v, w = sphere_motion
-        thinned.thin = Thinning(cell, GRAZING_COS, SEPARATED_COS, closing=(v - np.cross(w, origin), w, seconds), band=band)
+        thinned.thin = Thinning(cell, GRAZING_COS, SEPARATED_COS, closing=Closing(v - np.cross(w, origin), w, seconds), band=band)
         a, b = every(sdf_pose, lift), thinned(sdf_pose, lift)
         points, depths, contact_normals = (x.double().numpy() for x in (a.points, a.depths, a.normals))
         face_world = normals[a.triangles.numpy()]  # the mesh is only moved
         usable = facing_faces(contact_normals, face_world, depths) & closing_in_time(
-            points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)), seconds, 1.0)
+            points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)), seconds)
         least = {}
         for i in np.flatnonzero(usable):
             key = tuple(np.floor(points[i] / cell).astype(np.int64).tolist())

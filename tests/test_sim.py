@@ -17,7 +17,7 @@ import zoo.sim  # noqa: E402
 from sdfzoo.benches import sim_check, stress_sim  # noqa: E402
 from zoo.errors import InputError  # noqa: E402
 from zoo.geometry import face_normals  # noqa: E402
-from zoo.sim.contacts import closing_in_time, reduce_contacts, refine_near, refine_to_size  # noqa: E402
+from zoo.sim.contacts import reduce_contacts, refine_near, refine_to_size  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -312,22 +312,6 @@ def test_frictionless_contacts_hold_a_body_up_without_a_warning():
     assert abs(sim.pose("box")[2, 3] - sim_check.HALF) < 1e-3
     assert abs(sim.normal_force("box") - 9.81) < 0.05 * 9.81
     assert not sim.warnings
-
-
-def test_separated_contacts_are_kept_only_where_the_step_can_close_them():
-    """closing_in_time against the velocities worked by hand: touching contacts stay, separated ones stay only
-    while their bodies close the gap within 1.5 steps, rotation included."""
-    up = np.tile([0.0, 0.0, 1.0], (4, 1))  # normals from the SDF body (below) to the mesh body (above)
-    points = np.array([[0.0, 0.1, 0.0]] * 4)
-    depths = np.array([-1e-4, 2e-3, 4e-3, 2e-3])
-    at_rest = (np.zeros(3), np.zeros(6))
-    rising = (np.zeros(3), np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))  # 1 m/s towards the mesh body: 3 mm in 1.5 steps
-    spinning = (np.zeros(3), np.array([0.0, 0.0, 0.0, 10.0, 0.0, 0.0]))  # 10 rad/s about x: the points rise at 1 m/s
-    expected = [True, True, False, True]
-    assert closing_in_time(points, depths, up, rising, at_rest, 0.002, 1.5).tolist() == expected
-    assert closing_in_time(points, depths, up, spinning, at_rest, 0.002, 1.5).tolist() == expected
-    # the same motion given to the mesh body opens the gaps: only the touching contact stays
-    assert closing_in_time(points, depths, up, at_rest, rising, 0.002, 1.5).tolist() == [True, False, False, False]
 
 
 def _sphere_towards_plane(gap: float, speed: float, steps: int):

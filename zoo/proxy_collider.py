@@ -62,6 +62,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -77,6 +78,9 @@ from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, coun
 from .sdf import value_and_grad_numpy
 from .simplex import descent_segment, frank_wolfe_gap, on_simplex
 from .validation import as_pose_array, non_negative_float
+
+if TYPE_CHECKING:  # numba loads with zoo.contact_filters, where a thinning runs
+    from .contact_filters import Closing
 
 CLUSTER = 32  # faces per cluster of the first cull
 # projected-gradient steps on the proxy, at most, per face and call: a face new to the search takes several; one
@@ -99,16 +103,17 @@ class Thinning:
     SDF's deepest, for a reduction on the SDF's depths), those that
     face their faces (the normal, the proxy's, within |cos| ``touching_cos`` of the face's where the depth is at
     most 0, ``separated_cos`` beyond; a degenerate face always does) and, separated, close within the time
-    (``closing`` = (u (3,), w (3,), seconds): u + w x p is the SDF body's velocity less the mesh's at the world point
-    p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None: every one counts). These are
-    ``zoo.sim.contacts``' ``facing_faces`` and ``closing_in_time``, and its reduction keeps at most the deepest per
+    (``closing``, a :class:`zoo.contact_filters.Closing` (u, w, seconds): u + w x p is the SDF body's velocity less
+    the mesh's at the world point p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None:
+    every one counts). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to every
+    pair's contacts, and its reduction keeps at most the deepest per
     such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
     faces within the margin, not more contacts in the manifold)."""
 
     cell: float
     touching_cos: float
     separated_cos: float
-    closing: tuple | None = None
+    closing: Closing | None = None
     band: float = 0.0
 
 

@@ -21,6 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .contact_filters import closing_speed, usable
+
 try:
     from numba import njit
 except ImportError as error:  # pragma: no cover - numba is a dependency of sdfzoo
@@ -419,15 +421,15 @@ def near_deepest_per_cell(cells, values, band):
 def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation, sdf_rotation, sdf_shift, cell,
                  touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band):
     """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
-    contacts (the answers at most ``search``), in one pass: per cell, those a simulation can use within ``band`` of
-    the deepest of them.
+    contacts (the answers at most ``search``), in one pass: per cell, those a simulation can use
+    (:func:`zoo.contact_filters.usable`) within ``band`` of the deepest of them.
 
     Args:
         values (N,), bary (N, 3), tri (N, 3, 3), grads (N, 3), faces (N,): the answers (the SDF's frame).
         face_normal (F, 3): the faces' unit normals in the mesh's frame (zeros: degenerate); rotation (3, 3): the
             mesh's in the SDF's frame. sdf_rotation (3, 3), sdf_shift (3,): the SDF's pose in the world.
         cell, touching_cos, separated_cos: the ``Thinning``'s; closing_shift (3,), closing_turn (3,),
-            closing_seconds: its ``closing`` (u, w, seconds; seconds < 0: none).
+            closing_seconds: its ``closing`` (:class:`zoo.contact_filters.Closing`; seconds < 0: none).
         band: m, the ``Thinning``'s (0: the deepest and its equals).
     """
     n = values.shape[0]
@@ -435,6 +437,7 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
     rows = np.empty(n, dtype=np.int64)
     kept_values = np.empty(n)
     world = np.empty(3)
+    normal = np.empty(3)
     m = 0
     for i in range(n):
         value = values[i]
@@ -444,26 +447,20 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
         length = math.sqrt(grads[i, 0] ** 2 + grads[i, 1] ** 2 + grads[i, 2] ** 2)
         scale = 1.0 / length if length > 0 else 0.0
         gx, gy, gz = grads[i, 0] * scale, grads[i, 1] * scale, grads[i, 2] * scale  # the contact's normal, SDF frame
-        if not (face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0):  # a degenerate face faces
-            # the face's normal in the SDF's frame is rotation @ n, so its cosine with g is n . (rotation^T g)
-            cos = (face_normal[f, 0] * (rotation[0, 0] * gx + rotation[1, 0] * gy + rotation[2, 0] * gz)
-                   + face_normal[f, 1] * (rotation[0, 1] * gx + rotation[1, 1] * gy + rotation[2, 1] * gz)
-                   + face_normal[f, 2] * (rotation[0, 2] * gx + rotation[1, 2] * gy + rotation[2, 2] * gz))
-            if abs(cos) < (separated_cos if value > 0 else touching_cos):
-                continue
-        for a in range(3):  # the point in the world
+        # the face's normal in the SDF's frame is rotation @ n, so its cosine with g is n . (rotation^T g)
+        cos = (face_normal[f, 0] * (rotation[0, 0] * gx + rotation[1, 0] * gy + rotation[2, 0] * gz)
+               + face_normal[f, 1] * (rotation[0, 1] * gx + rotation[1, 1] * gy + rotation[2, 1] * gz)
+               + face_normal[f, 2] * (rotation[0, 2] * gx + rotation[1, 2] * gy + rotation[2, 2] * gz))
+        degenerate = face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0
+        for a in range(3):  # the point and the normal in the world
             world[a] = (sdf_rotation[a, 0] * (bary[i, 0] * tri[i, 0, 0] + bary[i, 1] * tri[i, 1, 0] + bary[i, 2] * tri[i, 2, 0])
                         + sdf_rotation[a, 1] * (bary[i, 0] * tri[i, 0, 1] + bary[i, 1] * tri[i, 1, 1] + bary[i, 2] * tri[i, 2, 1])
                         + sdf_rotation[a, 2] * (bary[i, 0] * tri[i, 0, 2] + bary[i, 1] * tri[i, 1, 2] + bary[i, 2] * tri[i, 2, 2])
                         + sdf_shift[a])
-        if value > 0 and closing_seconds >= 0:  # separated: kept where the bodies close it within the time
-            closing = 0.0
-            for a in range(3):
-                b, c = (a + 1) % 3, (a + 2) % 3
-                velocity = closing_shift[a] + closing_turn[b] * world[c] - closing_turn[c] * world[b]  # u + w x p
-                closing += velocity * (sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz)
-            if not closing * closing_seconds >= value:
-                continue
+            normal[a] = sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz
+        speed = closing_speed(closing_shift, closing_turn, world, normal) if value > 0 else 0.0
+        if not usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos):
+            continue
         for a in range(3):
             cells[m, a] = int(math.floor(world[a] / cell))
         rows[m] = i

@@ -263,30 +263,6 @@ def _subdivide(polygon: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.nda
     return np.asarray(v), np.asarray(f)
 
 
-# -- grazing contacts -----------------------------------------------------------------------
-
-GRAZING_COS = 0.5  # a touching contact whose SDF normal is more than 60 degrees from its face's normal is dropped
-SEPARATED_COS = math.cos(math.radians(15.0))  # a separated one (distance > 0): more than 15 degrees
-
-
-def facing_faces(normals: np.ndarray, faces: np.ndarray, depths: np.ndarray) -> np.ndarray:
-    """(K,) bool: keep the contact; its SDF normal (K, 3) is close enough to its face's unit normal (K, 3).
-
-    A mesh face beside the SDF, not under it (the ground just in front of a sliding box that sinks
-    0.1 mm into it), is within the margin of the SDF's side: its contact's normal lies along the
-    face, and MuJoCo would make it a wall that stops the box. A face ahead of a box's edge that
-    hovers over it reports its own edge's point, with a slanted normal: MuJoCo's solver resists the
-    box's approach along that normal and lifts it. Neither is a local minimum of the SDF over the
-    surface: at a minimum inside a face the SDF's gradient is along the face's normal (KKT), at an
-    edge of a flat continuation the neighbour holds a deeper one. So touching contacts (depth <= 0)
-    within 60 degrees of their face's normal and separated ones within 15 degrees are kept, either
-    side (open meshes have no reliable orientation). Degenerate faces (no normal) are kept.
-    """
-    cos = np.abs(np.einsum("ij,ij->i", normals, faces))
-    degenerate = ~(np.abs(faces).sum(axis=1) > 0)
-    return (cos >= np.where(depths > 0, SEPARATED_COS, GRAZING_COS)) | degenerate
-
-
 # -- reduction ------------------------------------------------------------------------------
 
 
@@ -391,27 +367,6 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = cross(normals, t1)
     return np.concatenate([normals, t1, t2], axis=1)
-
-
-def closing_in_time(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, sdf_motion, mesh_motion, dt: float,
-                    factor: float) -> np.ndarray:
-    """(K,) bool: the contact touches (depth <= 0) or its bodies close its gap within ``factor`` steps of ``dt``.
-
-    MuJoCo leaves out a contact its own collision finds beyond its margin (``exclude``); one given to its solver
-    with a positive distance still pushes the bodies apart while they approach (its reference acceleration damps
-    the approach), at any distance. A separated contact is kept only where the step can close it: the speculative
-    contact that stops a fast body before it crosses a thin wall, not a brake on two bodies passing close by.
-
-    Args:
-        points (K, 3), depths (K,), normals (K, 3): the contacts, world frame; normals from the SDF body to the mesh body.
-        sdf_motion, mesh_motion: each body's (origin (3,), velocity (6,): its origin's linear velocity, then angular), world.
-    """
-    def point_velocity(motion):
-        origin, velocity = motion
-        return velocity[:3] + cross(velocity[3:], points - origin)
-
-    closing = np.einsum("ij,ij->i", point_velocity(sdf_motion) - point_velocity(mesh_motion), normals)
-    return (depths <= 0) | (closing * dt * factor >= depths)
 
 
 def contact_rows(arrays: tuple[np.ndarray, np.ndarray, np.ndarray], keep: np.ndarray, geoms: tuple[int, int]) -> ContactRows:

@@ -23,8 +23,9 @@ import torch
 
 import zoo
 
+from ..contact_filters import GRAZING_COS, SEPARATED_COS
 from ..geometry import face_normals, invert_pose
-from .contacts import GRAZING_COS, MERGE_CELL, REFINE_CELLS, SEPARATED_COS, refine_near, refine_to_size, refined_pieces
+from .contacts import MERGE_CELL, REFINE_CELLS, refine_near, refine_to_size, refined_pieces
 from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import ContactParameters, body_pose, cube_corners, geom_pose
 from .segments import segment_minima
@@ -168,7 +169,7 @@ class Pair:
     def collide(self, t_sdf: np.ndarray, t_other: np.ndarray, margin: float, closing=None):
         """Its contacts at the poses ``t_sdf``, ``t_other`` (4, 4) within ``margin``: (zoo.Contacts in the world
         frame, their faces' world normals (K, 3)), or (None, None). ``closing``: the bodies' relative motion
-        (``zoo.proxy_collider.Thinning.closing``), for a collider that keeps only what can close in time."""
+        (:class:`zoo.contact_filters.Closing`), for a collider that keeps only what can close in time."""
         raise NotImplementedError
 
 

@@ -40,17 +40,11 @@ import torch
 
 import zoo
 
+from ..contact_filters import GRAZING_COS, SEPARATED_COS, Closing, usable_rows
 from ..errors import InputError
 from ..geometry import cross
 from ..validation import non_negative_float
-from .contacts import (
-    add_contacts,
-    as_numpy,
-    closing_in_time,
-    contact_rows,
-    facing_faces,
-    reduce_contacts,
-)
+from .contacts import add_contacts, as_numpy, contact_rows, reduce_contacts
 from .geoms import (
     body_geoms,
     body_pose,
@@ -418,12 +412,12 @@ class World:
         segments = segment_contacts([n for n in near if isinstance(n[0], SegmentPair)], data)
         found = []  # PairContacts of the pairs with contacts MuJoCo can use
         for pair, margin, t_other in near:
+            closing = self._closing(pair, data, velocities) if pair.deferred else None  # a thinning's test
             if isinstance(pair, SegmentPair):
                 contacts, mesh_normals = segments.get(id(pair), (None, None))
             else:
-                closing = self._closing(pair, data, velocities) if pair.deferred else None  # a thinning's test
                 contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], t_other, margin, closing)
-            usable = self._usable(pair, data, contacts, mesh_normals, velocities)
+            usable = self._usable(pair, contacts, mesh_normals, closing or self._closing(pair, data, velocities))
             if usable is not None:
                 stats.raw_contacts += len(usable.depths)
                 found.append(self._reduced_on_proxy(usable))
@@ -452,26 +446,22 @@ class World:
         linear = _length(a[:3] - b[:3])
         return (linear + reach * _length(a[3:]) + lever * _length(b[3:])) * self.model.opt.timestep
 
-    def _closing(self, pair: Pair, data, velocities: dict) -> tuple:
-        """The pair's relative motion this step, as a collider that thins its contacts tests it
-        (``zoo.proxy_collider.Thinning.closing``, what :func:`closing_in_time` tests in :meth:`_usable`)."""
+    def _closing(self, pair: Pair, data, velocities: dict) -> Closing:
+        """The pair's relative motion this step, and the time a separated contact has to close
+        (:class:`zoo.contact_filters.Closing`)."""
         a, b = velocities[pair.sdf_body.body], velocities[pair.body]
         shift = a[:3] - b[:3] - cross(a[3:], data.xpos[pair.sdf_body.body]) + cross(b[3:], data.xpos[pair.body])
-        return shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR
+        return Closing(shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR)
 
-    def _usable(self, pair: Pair, data, contacts, mesh_normals, velocities: dict) -> PairContacts | None:
-        """The pair's contacts with the rows MuJoCo can use, or None where there are none: facing their faces, and
-        touching or closing within the step (a separated one beyond that would only brake the bodies at a distance).
-        """
+    @staticmethod
+    def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts | None:
+        """The pair's contacts with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`), or None where
+        there are none: facing their faces, and touching or closing within the step."""
         if contacts is None or len(contacts) == 0:
             return None
-        sdf_body = pair.sdf_body
         points, depths, normals = as_numpy(contacts)
-        motion_a = (data.xpos[sdf_body.body].copy(), velocities[sdf_body.body])
-        motion_b = (data.xpos[pair.body].copy(), velocities[pair.body])
-        usable = facing_faces(normals, mesh_normals, depths) & closing_in_time(
-            points, depths, normals, motion_a, motion_b, self.model.opt.timestep, SPECULATIVE_FACTOR)
-        return PairContacts(pair, contacts, points, depths, normals, mesh_normals, np.nonzero(usable)[0])
+        usable = usable_rows(points, depths, normals, mesh_normals, *closing, GRAZING_COS, SEPARATED_COS)
+        return PairContacts(pair, contacts, points, depths, normals, mesh_normals, np.flatnonzero(usable))
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
