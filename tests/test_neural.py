@@ -245,6 +245,34 @@ def test_smooth_activation_tends_to_leaky_relu_within_its_bound(slope):
                                rtol=0, atol=1e-15)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_floored_softplus_is_the_activation_without_denormals(dtype):
+    """The activation with its softplus floored (torch's and the numpy network's) against slope x + (1 - slope)
+    softplus_beta(x) with torch's softplus unfloored: the same numbers where beta x is above the floor, within the
+    dtype's rounding of the terms below it (the slope's term hides the softplus there), and no denormal float in the
+    floored softplus's exponential (the floor's reason: CPUs are slow on them) where the unfloored one has many."""
+    from zoo.neural_numpy import SOFTPLUS_FLOOR, NumpyNetwork
+
+    slope, beta = 0.01, 100.0
+    x = torch.linspace(-3, 3, 60001, dtype=dtype)
+    unfloored = slope * x + (1 - slope) * torch.nn.functional.softplus(x, beta=beta)
+    rounding = 4 * torch.finfo(dtype).eps * (x.abs() + 1 / beta)  # the terms summed are at most this large
+    floored = neural.activation(x, slope, beta)
+    above = beta * x >= -SOFTPLUS_FLOOR
+    assert torch.equal(floored[above], unfloored[above])
+    assert ((floored - unfloored).abs() <= rounding).all()
+    net = NumpyNetwork(weights=[np.zeros((1, 1))], out_weight=np.zeros((1, 1)), out_bias=np.zeros(1),
+                       cloud_b=np.zeros((1, 5)), codes_1=np.zeros((1, 2)), positions=np.zeros((1, 3)),
+                       codes=np.zeros((1, 1)), eps=1e-8, negative_slope=slope, smooth_beta=beta, fourier_levels=0,
+                       dtype=np.float32 if dtype == torch.float32 else np.float64)
+    assert (np.abs(net._activation(x.numpy()) - unfloored.numpy()) <= rounding.numpy()).all()
+    tiny = torch.finfo(dtype).tiny
+    denormal = lambda t: int(((t > 0) & (t < tiny)).sum())  # noqa: E731
+    assert denormal(torch.exp(beta * x.clamp(min=-SOFTPLUS_FLOOR / beta))) == 0
+    if dtype == torch.float32:
+        assert denormal(torch.exp(beta * x)) > 1000
+
+
 def _gradient_jumps(config: NeuralSDFConfig) -> float:
     """Largest change of the decoder's gradient between neighbouring points 1.3e-4 apart along a line."""
     torch.manual_seed(0)

@@ -31,7 +31,7 @@ from torch import nn
 
 from .config import DictConfig
 from .errors import InputError
-from .neural_numpy import SMALL_BATCH, NumpyNetwork
+from .neural_numpy import SMALL_BATCH, SOFTPLUS_FLOOR, NumpyNetwork
 from .sdf import SDFBase
 from .validation import as_points
 
@@ -189,10 +189,14 @@ def activation(x: torch.Tensor, negative_slope: float, smooth_beta: float, inpla
     ``smooth_beta == 0``: LeakyReLU. Otherwise ``slope x + (1 - slope) softplus_beta(x)``, which
     tends to the LeakyReLU as beta grows (it differs by at most (1 - slope) log(2) / beta, at 0)
     and has a continuous derivative.
+
+    The softplus's input is held above ``-SOFTPLUS_FLOOR / beta``: below it the softplus is under exp(-40) / beta,
+    beyond the precision of the slope's term beside it (the sum is the same number), and exp(beta x) would be a
+    denormal float, on which a CPU's arithmetic is many times slower (most of a hidden layer's units sit there).
     """
     if not smooth_beta:
         return nn.functional.leaky_relu_(x, negative_slope) if inplace else nn.functional.leaky_relu(x, negative_slope)
-    soft = nn.functional.softplus(x, beta=smooth_beta)
+    soft = nn.functional.softplus(x.clamp(min=-SOFTPLUS_FLOOR / smooth_beta), beta=smooth_beta)
     if inplace:
         return x.mul_(negative_slope).add_(soft, alpha=1.0 - negative_slope)
     return negative_slope * x + (1.0 - negative_slope) * soft

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+SOFTPLUS_FLOOR = 40.0  # beta x below -this: the smooth activation's softplus is taken there (zoo.neural.activation)
 SMALL_BATCH = 512  # points: at most this many, on the CPU and without autograd, are asked in numpy
 
 
@@ -96,11 +97,13 @@ class NumpyNetwork:
         return value, grad_in[:, :c], grad_x
 
     def _activation(self, x):
-        """``zoo.neural.activation``: the LeakyReLU, or slope x + (1 - slope) softplus_beta(x) (torch's threshold of 20)."""
+        """``zoo.neural.activation``: the LeakyReLU, or slope x + (1 - slope) softplus_beta(x) (torch's threshold of 20,
+        and its input held above ``-SOFTPLUS_FLOOR / beta``: no denormal floats)."""
         if not self.beta:
             return np.where(x > 0, x, self.slope * x)
         bx = self.beta * x
-        soft = np.where(bx > 20, x, (np.log1p(np.exp(-np.abs(bx))) + np.maximum(bx, 0)) / self.beta)  # no overflow
+        tail = np.exp(-np.minimum(np.abs(bx), SOFTPLUS_FLOOR))  # no overflow, no denormals
+        soft = np.where(bx > 20, x, (np.log1p(tail) + np.maximum(bx, 0)) / self.beta)
         return self.slope * x + (1.0 - self.slope) * soft
 
     def _derivative(self, x):
