@@ -12,8 +12,12 @@ path (amortized from scratch, ``coherence=False``, the reference), each in its o
 - ``mug-drop-5cm``: the same mug dropped from 5 cm onto the rack, 0.4 s.
 
 Reports per scene and path the deepest penetration (the path's own contacts; the nut's over steps 40-60, the
-mug's over the whole run) and the median over those steps of a step's deepest and of its contacts, where the tracked body ends (the nut along the bolt, the mug's position), the time per
-step, and each proxy path against the full path.
+mug's over the whole run) and the median over those steps of a step's deepest and of its contacts, where the tracked
+body ends (the nut along the bolt, the mug's position), the time per step, and each proxy path against the full path.
+
+With ``--yardstick``, each path's poses are also measured by one yardstick, whatever the path: at the poses each step
+of the window detected its contacts at, the deepest of ``zoo.collide`` with Frank-Wolfe at 100 iterations (margin 0)
+over every (NeuralSDF body, mesh body) pair (slow: some 10,000 of the nut's faces lie within microns of the bolt).
 
     python -m investigations fidelity --out out/fidelity.json
 """
@@ -43,6 +47,7 @@ torch.set_num_threads(1)
 import zoo, zoo.sim
 from sdfzoo.benches.sim_scenarios import NUT_KV, NUT_SPEED, NUT_TORQUE
 scene, steps, lo, hi, options, path = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), json.loads(sys.argv[5]), json.loads(sys.argv[6])
+yardstick = sys.argv[7] == "yardstick"
 nut = "torque" in options
 sim = zoo.sim.load_scene(scene, drop=options.get("drop"), **path)
 sim.build()
@@ -51,8 +56,11 @@ if nut:
     i = sim.bodies["nut"].body_id
     sim.model.body_mass[i] *= options["mass"]
     sim.model.body_inertia[i] *= options["mass"]
-deepest, contacts, started = [], [], time.perf_counter()
-for _ in range(steps):
+pairs = [(a, b) for a, s in sim.bodies.items() for b, m in sim.bodies.items() if a != b and s.sdf is not None and m.mesh is not None]
+deepest, contacts, poses, started = [], [], [], time.perf_counter()
+for k in range(steps):
+    if yardstick and lo <= k < hi:
+        poses.append({name: sim.pose(name) for pair in pairs for name in pair})
     if nut:
         spin = float(sim.velocity("nut")[5])
         sim.data.xfrc_applied[i, 3:] = (0.0, 0.0, options["torque"] * NUT_TORQUE + NUT_KV * (options["speed"] * NUT_SPEED - spin))
@@ -60,17 +68,21 @@ for _ in range(steps):
     deepest.append(sim.log[-1].max_penetration)
     contacts.append(sim.log[-1].contacts)
 wall = time.perf_counter() - started
-print(json.dumps({"deepest_mm": 1e3 * max(deepest[lo:hi]), "median_deepest_mm": 1e3 * float(np.median(deepest[lo:hi])),
+measured = [max([0.0] + [-float(found.depths.min()) for a, b in pairs
+                         for found in [zoo.collide(sim.bodies[a].sdf, sim.bodies[b].mesh, pose[a], pose[b], margin=0.0,
+                                                   method="fw", iters=100)] if len(found)]) for pose in poses]
+print(json.dumps({**({"yardstick_mm": 1e3 * max(measured), "median_yardstick_mm": 1e3 * float(np.median(measured))} if yardstick else {}),"deepest_mm": 1e3 * max(deepest[lo:hi]), "median_deepest_mm": 1e3 * float(np.median(deepest[lo:hi])),
                   "median_contacts": float(np.median(contacts[lo:hi])), "end_m": sim.pose(body)[:3, 3].tolist(),
                   "ms_per_step": 1e3 * wall / steps}))
 """
 
 
-def one_run(scene: str, path: str) -> dict:
+def one_run(scene: str, path: str, yardstick: bool = False) -> dict:
     file, steps, (lo, hi), options = SCENES[scene]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     done = subprocess.run([sys.executable, "-c", ONE_RUN, file, str(steps), str(lo), str(hi), json.dumps(options),
-                           json.dumps(PATHS[path])], env=env, capture_output=True, text=True, timeout=7200)
+                           json.dumps(PATHS[path]), "yardstick" if yardstick else "own"], env=env, capture_output=True,
+                          text=True, timeout=7200)
     if done.returncode:
         raise RuntimeError(done.stderr[-3000:])
     return {"scene": scene, "path": path, **json.loads(done.stdout.strip().splitlines()[-1])}
@@ -82,7 +94,8 @@ def compared(default: dict, full: dict) -> dict:
     apart = abs(ends[0][2] - ends[1][2]) if default["scene"].startswith("nut") else sum((a - b) ** 2 for a, b in zip(*ends)) ** 0.5
     return {"scene": default["scene"], "depth_ratio": default["deepest_mm"] / full["deepest_mm"],
             "median_depth_ratio": default["median_deepest_mm"] / full["median_deepest_mm"],
-            "ends_apart_mm": 1e3 * apart, "speedup": full["ms_per_step"] / default["ms_per_step"]}
+            "ends_apart_mm": 1e3 * apart, "speedup": full["ms_per_step"] / default["ms_per_step"],
+            **({"yardstick_ratio": default["yardstick_mm"] / full["yardstick_mm"]} if "yardstick_mm" in full else {})}
 
 
 def main(argv=None) -> None:
@@ -92,12 +105,14 @@ def main(argv=None) -> None:
     parser.add_argument("--scene", action="append", choices=sorted(SCENES), default=[], help="default: all")
     parser.add_argument("--path", action="append", choices=sorted(PATHS), default=[],
                         help="default: all (a comparison needs full)")
+    parser.add_argument("--yardstick", action="store_true",
+                        help="also measure each path's poses by FW-100 (see the module docstring; minutes a nut step)")
     parser.add_argument("--out", default="out/fidelity.json")
     args = parser.parse_args(argv)
     runs, comparisons = [], []
     paths = args.path or sorted(PATHS)
     for scene in args.scene or SCENES:
-        done = {path: one_run(scene, path) for path in paths}
+        done = {path: one_run(scene, path, args.yardstick) for path in paths}
         runs += list(done.values())
         if "full" not in done:
             print(f"{scene:>14}: " + "; ".join(f"{p} deepest {r['deepest_mm']:.4f} mm (a step's median "
@@ -110,7 +125,9 @@ def main(argv=None) -> None:
             c, run = comparisons[-1], done[path]
             print(f"{scene:>14}, {path}: deepest {run['deepest_mm']:.4f} mm (full {full['deepest_mm']:.4f}, "
                   f"{c['depth_ratio']:.2f}x; a step's median {c['median_depth_ratio']:.2f}x); ends {c['ends_apart_mm']:.4f} mm "
-                  f"apart; {run['ms_per_step']:.1f} ms a step (full {full['ms_per_step']:.0f})", flush=True)
+                  f"apart; {run['ms_per_step']:.1f} ms a step (full {full['ms_per_step']:.0f})"
+                  + (f"; yardstick {run['yardstick_mm']:.4f} mm (full {full['yardstick_mm']:.4f}, {c['yardstick_ratio']:.2f}x)"
+                     if "yardstick_ratio" in c else ""), flush=True)
     write_report(args.out, {"runs": runs, "compared": comparisons}, "fidelity", argv)
 
 

@@ -417,10 +417,13 @@ class World:
                 contacts, mesh_normals = segments.get(id(pair), (None, None))
             else:
                 contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], t_other, margin, closing)
-            usable = self._usable(pair, contacts, mesh_normals, closing or self._closing(pair, data, velocities))
-            if usable is not None:
-                stats.raw_contacts += len(usable.depths)
-                found.append(self._reduced_on_proxy(usable))
+            if contacts is None or len(contacts) == 0:
+                continue
+            if closing is None:
+                closing = self._closing(pair, data, velocities)
+            usable = self._usable(pair, contacts, mesh_normals, closing)
+            stats.raw_contacts += len(usable.depths)
+            found.append(self._reduced_on_proxy(usable))
         for found_pair in self.exact_answers(found):
             keep = found_pair.usable if found_pair.reduced else self._reduced(found_pair)
             if not len(keep):
@@ -454,11 +457,9 @@ class World:
         return Closing(shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR)
 
     @staticmethod
-    def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts | None:
-        """The pair's contacts with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`), or None where
-        there are none: facing their faces, and touching or closing within the step."""
-        if contacts is None or len(contacts) == 0:
-            return None
+    def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts:
+        """The pair's contacts (at least one) with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`):
+        facing their faces, and touching or closing within the step."""
         points, depths, normals = as_numpy(contacts)
         usable = usable_rows(points, depths, normals, mesh_normals, *closing, GRAZING_COS, SEPARATED_COS)
         return PairContacts(pair, contacts, points, depths, normals, mesh_normals, np.flatnonzero(usable))
