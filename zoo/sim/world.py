@@ -4,8 +4,8 @@ The user keeps their model and their loop. :func:`attach` names bodies of the mo
 is an SDF (in the body's frame); each is collided with every geom MuJoCo would let it touch
 (:mod:`zoo.sim.geoms`), and MuJoCo keeps colliding every other pair itself. At every step, after MuJoCo's
 position and velocity stages, the World detects each pair's contacts (``zoo.collide`` or, along the
-trajectory, ``zoo.CoherentCollider``), keeps those MuJoCo's solver can use and reduces them to a manifold
-(:mod:`zoo.sim.contacts`), appends them with ``mj_addContact`` and rebuilds the constraint stage
+trajectory, ``zoo.CoherentCollider``), keeps those MuJoCo's solver can use (:mod:`zoo.contact_filters`) and reduces
+them to a manifold (:mod:`zoo.sim.contacts`), appends them with ``mj_addContact`` and rebuilds the constraint stage
 (``mj_makeConstraint``, ``mj_island``, ``mj_projectConstraint``, ``mj_referenceConstraint``: adding a
 contact clears the constraint rows). Two ways to run it, with identical trajectories:
 
