@@ -95,8 +95,7 @@ def simulate(scenario: str, method: str, seconds: float) -> dict:
     sim.build()
     control = SCENARIOS[scenario].control if scenario in SCENARIOS else None
     extra = (SCENARIOS[scenario].prepare(sim) or {}) if control is not None else {}
-    pairs = [(a, b) for a, sdf_body in sim.bodies.items() for b, mesh_body in sim.bodies.items()
-             if a != b and sdf_body.sdf is not None and mesh_body.mesh is not None]
+    pairs = sdf_mesh_pairs(sim)
     poses = []
     started = time.perf_counter()
     for _ in range(int(round(seconds / sim.dt))):
@@ -122,21 +121,32 @@ def simulate(scenario: str, method: str, seconds: float) -> dict:
     }
 
 
-def yardstick_penetration(sim, pairs: list[tuple[str, str]], poses: list[dict], own: list[float]) -> float:
-    """The deepest penetration (m) at the ``YARDSTICK_STEPS`` steps where the run's own contacts were deepest, measured
-    the same way whatever the run's detector: the deeper of its own contact and ``zoo.collide`` with Frank-Wolfe at
-    ``YARDSTICK_ITERS`` iterations (margin 0) on each (SDF body, mesh body) pair at that step's poses."""
+def sdf_mesh_pairs(sim) -> list[tuple[str, str]]:
+    """The (SDF body, mesh body) name pairs of a ``zoo.sim.Simulation``: what the yardstick measures."""
+    return [(a, b) for a, sdf_body in sim.bodies.items() for b, mesh_body in sim.bodies.items()
+            if a != b and sdf_body.sdf is not None and mesh_body.mesh is not None]
+
+
+def yardstick_depth(sim, pairs: list[tuple[str, str]], poses: dict) -> float:
+    """The deepest penetration (m, 0 where none) at the bodies' ``poses`` ({name: (4, 4)}), measured the same way
+    whatever a run's detector: ``zoo.collide`` with Frank-Wolfe at ``YARDSTICK_ITERS`` iterations (margin 0) on each
+    of ``pairs`` (:func:`sdf_mesh_pairs`)."""
     import zoo
 
     deepest = 0.0
-    for k in np.argsort(own)[::-1][:YARDSTICK_STEPS]:
-        deepest = max(deepest, own[k])
-        for a, b in pairs:
-            found = zoo.collide(sim.bodies[a].sdf, sim.bodies[b].mesh, poses[k][a], poses[k][b], margin=0.0,
-                                method="fw", iters=YARDSTICK_ITERS)
-            if len(found):
-                deepest = max(deepest, -float(found.depths.min()))
+    for a, b in pairs:
+        found = zoo.collide(sim.bodies[a].sdf, sim.bodies[b].mesh, poses[a], poses[b], margin=0.0, method="fw",
+                            iters=YARDSTICK_ITERS)
+        if len(found):
+            deepest = max(deepest, -float(found.depths.min()))
     return deepest
+
+
+def yardstick_penetration(sim, pairs: list[tuple[str, str]], poses: list[dict], own: list[float]) -> float:
+    """The deepest penetration (m) at the ``YARDSTICK_STEPS`` steps where the run's own contacts were deepest: the
+    deeper of its own contact and :func:`yardstick_depth` at that step's poses."""
+    return max([0.0] + [max(own[k], yardstick_depth(sim, pairs, poses[k]))
+                        for k in np.argsort(own)[::-1][:YARDSTICK_STEPS]])
 
 
 def reference(kind: str, scenario: str, seconds: float, dt: float = 0.002) -> dict:

@@ -16,8 +16,8 @@ mug's over the whole run) and the median over those steps of a step's deepest an
 body ends (the nut along the bolt, the mug's position), the time per step, and each proxy path against the full path.
 
 With ``--yardstick``, each path's poses are also measured by one yardstick, whatever the path: at the poses each step
-of the window detected its contacts at, the deepest of ``zoo.collide`` with Frank-Wolfe at 100 iterations (margin 0)
-over every (NeuralSDF body, mesh body) pair (slow: some 10,000 of the nut's faces lie within microns of the bolt).
+of the window detected its contacts at, ``zoo bench --sim``'s (``benches/sim_bench.py``'s ``yardstick_depth``: FW-100,
+margin 0, every NeuralSDF-mesh pair; slow: some 10,000 of the nut's faces lie within microns of the bolt).
 
     python -m investigations fidelity --out out/fidelity.json
 """
@@ -45,6 +45,7 @@ import json, sys, time
 import numpy as np, torch
 torch.set_num_threads(1)
 import zoo, zoo.sim
+from sdfzoo.benches.sim_bench import sdf_mesh_pairs, yardstick_depth
 from sdfzoo.benches.sim_scenarios import NUT_KV, NUT_SPEED, NUT_TORQUE
 scene, steps, lo, hi, options, path = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), json.loads(sys.argv[5]), json.loads(sys.argv[6])
 yardstick = sys.argv[7] == "yardstick"
@@ -56,7 +57,7 @@ if nut:
     i = sim.bodies["nut"].body_id
     sim.model.body_mass[i] *= options["mass"]
     sim.model.body_inertia[i] *= options["mass"]
-pairs = [(a, b) for a, s in sim.bodies.items() for b, m in sim.bodies.items() if a != b and s.sdf is not None and m.mesh is not None]
+pairs = sdf_mesh_pairs(sim)
 deepest, contacts, poses, started = [], [], [], time.perf_counter()
 for k in range(steps):
     if yardstick and lo <= k < hi:
@@ -68,12 +69,13 @@ for k in range(steps):
     deepest.append(sim.log[-1].max_penetration)
     contacts.append(sim.log[-1].contacts)
 wall = time.perf_counter() - started
-measured = [max([0.0] + [-float(found.depths.min()) for a, b in pairs
-                         for found in [zoo.collide(sim.bodies[a].sdf, sim.bodies[b].mesh, pose[a], pose[b], margin=0.0,
-                                                   method="fw", iters=100)] if len(found)]) for pose in poses]
-print(json.dumps({**({"yardstick_mm": 1e3 * max(measured), "median_yardstick_mm": 1e3 * float(np.median(measured))} if yardstick else {}),"deepest_mm": 1e3 * max(deepest[lo:hi]), "median_deepest_mm": 1e3 * float(np.median(deepest[lo:hi])),
-                  "median_contacts": float(np.median(contacts[lo:hi])), "end_m": sim.pose(body)[:3, 3].tolist(),
-                  "ms_per_step": 1e3 * wall / steps}))
+row = {"deepest_mm": 1e3 * max(deepest[lo:hi]), "median_deepest_mm": 1e3 * float(np.median(deepest[lo:hi])),
+       "median_contacts": float(np.median(contacts[lo:hi])), "end_m": sim.pose(body)[:3, 3].tolist(),
+       "ms_per_step": 1e3 * wall / steps}
+if yardstick:
+    measured = [yardstick_depth(sim, pairs, pose) for pose in poses]
+    row.update(yardstick_mm=1e3 * max(measured), median_yardstick_mm=1e3 * float(np.median(measured)))
+print(json.dumps(row))
 """
 
 
