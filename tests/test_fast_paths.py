@@ -138,6 +138,8 @@ def test_inference_decoder_is_the_decoder_and_follows_its_weights(dtype, smooth_
         torch.testing.assert_close(shape.normalised(p), dec(z, p), atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
         dec.hidden[0].bias.add_(0.5)  # weights changed in place (an optimiser step): the folded copy follows
         torch.testing.assert_close(shape._decoder_no_grad(dtype, "cpu")(z, p), dec(z, p), atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
+        dec.hidden[1].weight = torch.nn.Parameter(dec.hidden[1].weight * 0.5)  # a parameter replaced: followed too
+        torch.testing.assert_close(shape._decoder_no_grad(dtype, "cpu")(z, p), dec(z, p), atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
     assert not neural.InferenceDecoder.supports(neural.Decoder(NeuralSDFConfig(n_codes=8, code_dim=4, hidden=(16, 8))))
 
 

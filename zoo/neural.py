@@ -275,6 +275,8 @@ class InferenceDecoder:
 
     def __init__(self, decoder: Decoder):
         self.decoder = decoder
+        # each module's own parameter table, read at every check: a walk over the modules costs more than the check
+        self._tables = [module._parameters for module in decoder.modules()]
         self.version = self._version()
         width = decoder.hidden[0].out_features
         self.width = width
@@ -289,7 +291,7 @@ class InferenceDecoder:
         return decoder.skip_input and len(widths) == 1
 
     def _version(self) -> tuple:
-        return tuple((p.data_ptr(), p._version) for p in self.decoder.parameters())
+        return tuple((p.data_ptr(), p._version) for table in self._tables for p in table.values() if p is not None)
 
     @property
     def current(self) -> bool:
