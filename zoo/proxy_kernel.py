@@ -72,7 +72,10 @@ def read(px, py, pz, grid, missing, counts):
     """The proxy ``grid`` (``zoo.proxy.ProxyGrid``) at one point (SDF frame): (value, gx, gy, gz, status), as
     ``ProxySDF.read_numpy`` gives it; status ``MISSING`` (the rest NaN) where the point's brick is not ready, its flat
     index b then added to ``missing`` (-1 - b for a point outside the region: its nearest brick's coarse value alone is
-    needed). ``counts``: a ``COUNTS`` record (its reads and missing counted)."""
+    needed). ``counts``: a ``COUNTS`` record (its reads and missing counted).
+
+    One exit, where every array is used last: numba counts a reference to each array the read unpacks, and prunes
+    those counts only where they meet in one block; left in the branches, they cost four times the read."""
     lo, hi, inv_h, band, lip, brick_of, nodes, status, coarse_value, coarse_grad, n_bricks, brick_side, first_centre = grid
     counts.reads += 1
     ux, uy, uz = (px - lo[0]) * inv_h, (py - lo[1]) * inv_h, (pz - lo[2]) * inv_h
@@ -88,45 +91,48 @@ def read(px, py, pz, grid, missing, counts):
     bx, by, bz = cx >> 3, cy >> 3, cz >> 3
     flat = (bx * n_bricks[1] + by) * n_bricks[2] + bz
     row = brick_of[flat]
-    if row < 0:
-        if inside or math.isnan(coarse_value[flat]):  # outside the region, the nearest brick's coarse value is needed
-            n = counts.missing
-            if n < missing.size:
-                missing[n] = flat if inside else -1 - flat
-            counts.missing = n + 1
-            return math.nan, math.nan, math.nan, math.nan, MISSING
-        row = 0
-    ix, iy, iz = cx & 7, cy & 7, cz & 7
-    cell_status = status[row * 512 + ix * 64 + iy * 8 + iz]
-    if inside and cell_status == IN_BAND:
-        b = row * 729 + ix * 81 + iy * 9 + iz  # the cell's first node; corner (i, j, k) at b + 81 i + 9 j + k
-        c000, c001, c010, c011 = float(nodes[b]), float(nodes[b + 1]), float(nodes[b + 9]), float(nodes[b + 10])
-        c100, c101, c110, c111 = float(nodes[b + 81]), float(nodes[b + 82]), float(nodes[b + 90]), float(nodes[b + 91])
-        d00, d01, d10, d11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110  # d/dz along the 4 edges
-        e00, e01, e10, e11 = c000 + d00 * tz, c010 + d01 * tz, c100 + d10 * tz, c110 + d11 * tz
-        a0, a1 = e00 + (e01 - e00) * ty, e10 + (e11 - e10) * ty
-        dz0, dz1 = d00 + (d01 - d00) * ty, d10 + (d11 - d10) * ty
-        dy0, dy1 = e01 - e00, e11 - e10
-        return (a0 + (a1 - a0) * tx, (a1 - a0) * inv_h, (dy0 + (dy1 - dy0) * tx) * inv_h,
-                (dz0 + (dz1 - dz0) * tx) * inv_h, IN_BAND)
-    # out of band: the brick centre's bound f(c) - L |p - c| (at least the band in an ABOVE cell)
-    ax = px - (bx * brick_side + first_centre[0])
-    ay = py - (by * brick_side + first_centre[1])
-    az = pz - (bz * brick_side + first_centre[2])
-    value = float(coarse_value[flat]) - lip * math.sqrt(ax * ax + ay * ay + az * az)
-    if inside:
-        if cell_status == ABOVE:
-            value = max(value, band)
-        gx, gy, gz = float(coarse_grad[flat, 0]), float(coarse_grad[flat, 1]), float(coarse_grad[flat, 2])
-    else:  # outside the region: also at least the band plus the distance to it; pointing away from it
-        ax = px - min(max(px, lo[0]), hi[0])
-        ay = py - min(max(py, lo[1]), hi[1])
-        az = pz - min(max(pz, lo[2]), hi[2])
-        gap = math.sqrt(ax * ax + ay * ay + az * az)
-        value = max(value, band + gap)
-        scale = 1.0 / max(gap, TINY)
-        gx, gy, gz = ax * scale, ay * scale, az * scale
-    return value, gx, gy, gz, (ABOVE if value >= band else UNKNOWN)
+    value, gx, gy, gz, state = math.nan, math.nan, math.nan, math.nan, MISSING
+    if row < 0 and (inside or math.isnan(coarse_value[flat])):  # outside the region, the nearest brick's coarse value is needed
+        n = counts.missing
+        if n < missing.size:
+            missing[n] = flat if inside else -1 - flat
+        counts.missing = n + 1
+    else:
+        row = max(row, 0)
+        ix, iy, iz = cx & 7, cy & 7, cz & 7
+        cell_status = status[row * 512 + ix * 64 + iy * 8 + iz]
+        if inside and cell_status == IN_BAND:
+            b = row * 729 + ix * 81 + iy * 9 + iz  # the cell's first node; corner (i, j, k) at b + 81 i + 9 j + k
+            c000, c001, c010, c011 = float(nodes[b]), float(nodes[b + 1]), float(nodes[b + 9]), float(nodes[b + 10])
+            c100, c101, c110, c111 = float(nodes[b + 81]), float(nodes[b + 82]), float(nodes[b + 90]), float(nodes[b + 91])
+            d00, d01, d10, d11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110  # d/dz along the 4 edges
+            e00, e01, e10, e11 = c000 + d00 * tz, c010 + d01 * tz, c100 + d10 * tz, c110 + d11 * tz
+            a0, a1 = e00 + (e01 - e00) * ty, e10 + (e11 - e10) * ty
+            dz0, dz1 = d00 + (d01 - d00) * ty, d10 + (d11 - d10) * ty
+            dy0, dy1 = e01 - e00, e11 - e10
+            value, gx, gy, gz, state = (a0 + (a1 - a0) * tx, (a1 - a0) * inv_h, (dy0 + (dy1 - dy0) * tx) * inv_h,
+                                        (dz0 + (dz1 - dz0) * tx) * inv_h, IN_BAND)
+        else:  # out of band: the brick centre's bound f(c) - L |p - c| (at least the band in an ABOVE cell)
+            ax = px - (bx * brick_side + first_centre[0])
+            ay = py - (by * brick_side + first_centre[1])
+            az = pz - (bz * brick_side + first_centre[2])
+            value = float(coarse_value[flat]) - lip * math.sqrt(ax * ax + ay * ay + az * az)
+            if inside:
+                if cell_status == ABOVE:
+                    value = max(value, band)
+                gx, gy, gz = float(coarse_grad[flat, 0]), float(coarse_grad[flat, 1]), float(coarse_grad[flat, 2])
+            else:  # outside the region: also at least the band plus the distance to it; pointing away from it
+                ax = px - min(max(px, lo[0]), hi[0])
+                ay = py - min(max(py, lo[1]), hi[1])
+                az = pz - min(max(pz, lo[2]), hi[2])
+                gap = math.sqrt(ax * ax + ay * ay + az * az)
+                value = max(value, band + gap)
+                scale = 1.0 / max(gap, TINY)
+                gx, gy, gz = ax * scale, ay * scale, az * scale
+            state = ABOVE if value >= band else UNKNOWN
+    arrays = (lo.size + hi.size + brick_of.size + nodes.size + status.size + coarse_value.size + coarse_grad.size
+              + n_bricks.size + first_centre.size + missing.size)
+    return value, gx, gy, gz, state + 0 * arrays
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -170,17 +176,18 @@ def _descent_segment(t, b, gx, gy, gz, direction):
         if direction[v] < 0:
             reach = min(reach, b[v] / -direction[v])
     reach = reach if math.isfinite(reach) else 0.0
-    if reach * max(abs(direction[0]), abs(direction[1]), abs(direction[2])) > 0:
-        return reach
-    # nowhere (a needle, or a corner the plane's descent leaves): towards Frank-Wolfe's vertex, a descent wherever its
-    # gap is positive
-    s0 = gx * t[0, 0] + gy * t[0, 1] + gz * t[0, 2]
-    s1 = gx * t[1, 0] + gy * t[1, 1] + gz * t[1, 2]
-    s2 = gx * t[2, 0] + gy * t[2, 1] + gz * t[2, 2]
-    k = 0 if s0 <= min(s1, s2) else (1 if s1 <= s2 else 2)
-    for v in range(3):
-        direction[v] = (1.0 if v == k else 0.0) - b[v]
-    return 1.0
+    if not reach * max(abs(direction[0]), abs(direction[1]), abs(direction[2])) > 0:
+        # nowhere (a needle, or a corner the plane's descent leaves): towards Frank-Wolfe's vertex, a descent wherever
+        # its gap is positive
+        s0 = gx * t[0, 0] + gy * t[0, 1] + gz * t[0, 2]
+        s1 = gx * t[1, 0] + gy * t[1, 1] + gz * t[1, 2]
+        s2 = gx * t[2, 0] + gy * t[2, 1] + gz * t[2, 2]
+        k = 0 if s0 <= min(s1, s2) else (1 if s1 <= s2 else 2)
+        for v in range(3):
+            direction[v] = (1.0 if v == k else 0.0) - b[v]
+        reach = 1.0
+    arrays = t.size + b.size + direction.size  # one exit, every array used last: see read
+    return reach + 0 * arrays
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -201,8 +208,7 @@ def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
     p1x, p1y, p1z = n0 * t[0, 0] + n1 * t[1, 0] + n2 * t[2, 0], n0 * t[0, 1] + n1 * t[1, 1] + n2 * t[2, 1], \
         n0 * t[0, 2] + n1 * t[1, 2] + n2 * t[2, 2]
     f1, g1x, g1y, g1z, s1 = read(p1x, p1y, p1z, grid, missing, counts)
-    if s1 == MISSING:
-        return False
+    found = s1 != MISSING
     slope = (p1x - p0x) * gx + (p1y - p0y) * gy + (p1z - p0z) * gz
     curvature = f1 - f0 - slope
     step = 1.0
@@ -210,17 +216,18 @@ def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
         step = min(max(-slope / (2 * curvature), 0.0), 1.0)
     if not math.isfinite(step):
         step = 0.0
-    m0, m1, m2 = _on_simplex(b[0] + step * reach * direction[0], b[1] + step * reach * direction[1],
-                             b[2] + step * reach * direction[2])
-    fm, gmx, gmy, gmz, sm = read(m0 * t[0, 0] + m1 * t[1, 0] + m2 * t[2, 0], m0 * t[0, 1] + m1 * t[1, 1] + m2 * t[2, 1],
-                                 m0 * t[0, 2] + m1 * t[1, 2] + m2 * t[2, 2], grid, missing, counts)
-    if sm == MISSING:
-        return False
-    if f1 < fm:
-        answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = n0, n1, n2, f1, g1x, g1y, g1z, s1
-    else:
-        answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = m0, m1, m2, fm, gmx, gmy, gmz, sm
-    return True
+    if found:
+        m0, m1, m2 = _on_simplex(b[0] + step * reach * direction[0], b[1] + step * reach * direction[1],
+                                 b[2] + step * reach * direction[2])
+        fm, gmx, gmy, gmz, sm = read(m0 * t[0, 0] + m1 * t[1, 0] + m2 * t[2, 0], m0 * t[0, 1] + m1 * t[1, 1] + m2 * t[2, 1],
+                                     m0 * t[0, 2] + m1 * t[1, 2] + m2 * t[2, 2], grid, missing, counts)
+        found = sm != MISSING
+        if found and f1 < fm:
+            answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = n0, n1, n2, f1, g1x, g1y, g1z, s1
+        elif found:
+            answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = m0, m1, m2, fm, gmx, gmy, gmz, sm
+    arrays = t.size + b.size + direction.size + answer.size + missing.size + grid.nodes.size  # one exit, every array used last: see read
+    return found | (arrays < 0)
 
 
 @njit(cache=True, error_model="numpy")
