@@ -6,9 +6,9 @@ functions that make them (the wrapping adds about a microsecond a call):
 
 - ``step``: the whole step (MuJoCo's included); ``contacts``: sdfzoo's detection and the contacts added to MuJoCo
   (``World.add_contacts``);
-- ``proxy call``: the proxy collider's call (``ProxyCollider.__call__``), of which ``compiled loop``
+- ``proxy call``: the proxy collider's call (``ProxyCollider.collide_arrays``), of which ``compiled loop``
   (``zoo.proxy_kernel.search_faces``);
-- ``SDF answers``: the NeuralSDF's answers to the contacts kept (``zoo.proxy_collider.exact_contacts_together``), of
+- ``SDF answers``: the NeuralSDF's answers to the contacts kept (``zoo.proxy_collider.exact_arrays_together``), of
   which ``NeuralSDF queries`` (a NeuralShape's ``value_and_grad_few`` and ``value_and_grad``);
 - ``filters``: the contacts MuJoCo can use (``zoo.contact_filters.usable_rows``); ``reduction``: their reduction
   (``reduce_contacts``).
@@ -33,9 +33,9 @@ from investigations.report import write_report
 
 PHASES = {  # label: [(module, owner's name or None for a module function, function)]: public names only
     "contacts": [("zoo.sim.world", "World", "add_contacts")],
-    "proxy call": [("zoo.proxy_collider", "ProxyCollider", "__call__")],
+    "proxy call": [("zoo.proxy_collider", "ProxyCollider", "collide_arrays")],
     "compiled loop": [("zoo.proxy_kernel", None, "search_faces")],
-    "SDF answers": [("zoo.proxy_collider", None, "exact_contacts_together")],
+    "SDF answers": [("zoo.proxy_collider", None, "exact_arrays_together")],
     "NeuralSDF queries": [("zoo.neural", "NeuralShape", "value_and_grad_few"), ("zoo.neural", "NeuralShape", "value_and_grad")],
     "filters": [("zoo.sim.world", None, "usable_rows")],
     "reduction": [("zoo.sim.world", None, "reduce_contacts")],

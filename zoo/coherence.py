@@ -41,6 +41,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch.nn import functional as F
 
@@ -48,6 +49,7 @@ from .bounds import cell_lower_bounds, rounding_slack
 from .collider import REUSE_FRACTION, CoherenceStats, motion_lipschitz, moved_along_normal
 from .collision import (
     CLUSTER_CULL_MIN,
+    ContactArrays,
     Contacts,
     cell_bounds,
     collide,
@@ -364,6 +366,15 @@ class CoherentCollider:
         return ProxyCollider(self.sdf, (self.vertices, self.faces), proxy, self.margin, self.method,
                              iters=None if self.method == "amortized" else self.iters, polish=self.polish,
                              reuse_distance=self.reuse_distance, deferred=deferred)
+
+    def collide_arrays(self, sdf_pose: np.ndarray, mesh_pose: np.ndarray, margin: float | None = None) -> ContactArrays:
+        """:meth:`__call__` for a simulation's step: the poses float64 (4, 4) arrays, the contacts as
+        :class:`zoo.collision.ContactArrays`; on a proxy, numpy throughout and the poses taken as given."""
+        if self._on_proxy is None:
+            return ContactArrays.from_contacts(self(torch.from_numpy(sdf_pose), torch.from_numpy(mesh_pose), margin))
+        contacts = self._on_proxy.collide_arrays(sdf_pose, mesh_pose, margin)
+        self.last_stats, self.last_candidates = self._on_proxy.last_stats, self._on_proxy.last_candidates
+        return contacts
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
         """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them;

@@ -39,6 +39,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from .bounds import cell_lower_bounds, rounding_slack
@@ -89,6 +90,67 @@ class Contacts:
             f"Contacts({len(self)} contacts from {self.n_candidates} candidates of "
             f"{self.n_triangles} triangles, method={self.method!r})"
         )
+
+
+@dataclass
+class ContactArrays:
+    """:class:`Contacts` as float64 numpy arrays, for a simulation's per-step paths, where torch's cost per call
+    shows (the same fields and frames): ``points`` (K, 3), ``depths`` (K,), ``normals`` (K, 3) unit (zeros where the
+    SDF's gradient vanishes), ``triangles`` (K,) int64, ``bary`` (K, 3), and ``n_triangles``, ``n_candidates``,
+    ``method``, ``timings`` as :class:`Contacts` has them."""
+
+    points: np.ndarray
+    depths: np.ndarray
+    normals: np.ndarray
+    triangles: np.ndarray
+    bary: np.ndarray
+    n_triangles: int = 0
+    n_candidates: int = 0
+    method: str = "fw"
+    timings: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.depths.shape[0])
+
+    @classmethod
+    def empty(cls, method: str = "fw") -> ContactArrays:
+        return cls(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3)),
+                   method=method)
+
+    @classmethod
+    def from_contacts(cls, contacts: Contacts) -> ContactArrays:
+        """A :class:`Contacts`'s rows, its normals made unit."""
+        as_array = lambda t: np.asarray(t.detach().cpu(), dtype=np.float64)  # noqa: E731
+        normals = as_array(contacts.normals)
+        length = np.sqrt((normals * normals).sum(axis=1, keepdims=True))
+        normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+        return cls(as_array(contacts.points), as_array(contacts.depths), normals,
+                   np.asarray(contacts.triangles.detach().cpu(), dtype=np.int64), as_array(contacts.bary),
+                   contacts.n_triangles, contacts.n_candidates, contacts.method, contacts.timings)
+
+    @classmethod
+    def concat(cls, parts: list[ContactArrays]) -> ContactArrays:
+        """The rows of ``parts`` one after the other (their triangle and candidate counts summed)."""
+        if not parts:
+            return cls.empty()
+        if len(parts) == 1:
+            return parts[0]
+        column = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+        return cls(column("points"), column("depths"), column("normals"), column("triangles"), column("bary"),
+                   sum(p.n_triangles for p in parts), sum(p.n_candidates for p in parts), parts[0].method)
+
+    def take(self, rows: np.ndarray) -> ContactArrays:
+        """The rows ``rows`` (R,), in that order."""
+        return ContactArrays(self.points[rows], self.depths[rows], self.normals[rows], self.triangles[rows],
+                             self.bary[rows], self.n_triangles, self.n_candidates, self.method, self.timings)
+
+    def to_contacts(self, dtype: torch.dtype = torch.float64) -> Contacts:
+        """These rows as :class:`Contacts` in ``dtype`` (triangles int64)."""
+        as_tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(dtype)  # noqa: E731
+        return Contacts(points=as_tensor(self.points), depths=as_tensor(self.depths), normals=as_tensor(self.normals),
+                        triangles=torch.from_numpy(np.ascontiguousarray(self.triangles, dtype=np.int64)),
+                        bary=as_tensor(self.bary), n_triangles=self.n_triangles, n_candidates=self.n_candidates,
+                        method=self.method, timings=self.timings)
 
 
 # -- broad phase ----------------------------------------------------------------------------

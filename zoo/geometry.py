@@ -105,8 +105,13 @@ def faces_touching_box(vertices: torch.Tensor, faces: torch.Tensor, lo: torch.Te
     return (shared == 0).nonzero().squeeze(-1)
 
 
-def invert_pose(pose: torch.Tensor) -> torch.Tensor:
-    """Inverse of a rigid 4x4 transform."""
+def invert_pose(pose):
+    """Inverse of a rigid 4x4 transform, a torch tensor or a numpy array (the same kind back)."""
+    if isinstance(pose, np.ndarray):
+        inv = np.eye(4, dtype=pose.dtype)
+        inv[:3, :3] = pose[:3, :3].T
+        inv[:3, 3] = -(pose[:3, :3].T @ pose[:3, 3])
+        return inv
     inv = torch.eye(4, dtype=pose.dtype, device=pose.device)
     r = pose[:3, :3]
     inv[:3, :3] = r.T

@@ -69,9 +69,9 @@ import torch
 
 from .bounds import triangle_reach
 from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved_along_normal
-from .collision import Contacts, mesh_tensors, solve_candidates
+from .collision import ContactArrays, Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
-from .geometry import face_normals
+from .geometry import face_normals, invert_pose
 from .methods import iterations
 from .proxy import IN_BAND
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
@@ -200,13 +200,16 @@ class ProxyCollider:
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
         """Contacts at these poses (4x4 world-from-object, None: identity), as ``zoo.collide`` gives them (the proxy's,
         when ``deferred``); ``margin`` replaces the collider's for this call."""
+        arrays = self.collide_arrays(as_pose_array(sdf_pose, "sdf_pose"), as_pose_array(mesh_pose, "mesh_pose"), margin)
+        return arrays.to_contacts(self.vertices.dtype)
+
+    def collide_arrays(self, sdf_pose: np.ndarray, mesh_pose: np.ndarray, margin: float | None = None) -> ContactArrays:
+        """:meth:`__call__` in numpy, for a simulation's step: the poses float64 (4, 4) rigid transforms, taken as given
+        (``__call__`` checks them), the contacts as :class:`zoo.collision.ContactArrays`."""
         margin = self.margin if margin is None else non_negative_float(margin, "margin")
         stats = CoherenceStats(steps=1)
         t0 = time.perf_counter()
-        sdf_pose = as_pose_array(sdf_pose, "sdf_pose")
-        inverse = np.eye(4)  # rigid: a transpose, not a general inverse
-        inverse[:3, :3], inverse[:3, 3] = sdf_pose[:3, :3].T, -sdf_pose[:3, :3].T @ sdf_pose[:3, 3]
-        relative = inverse @ as_pose_array(mesh_pose, "mesh_pose")
+        relative = invert_pose(sdf_pose) @ mesh_pose
         rotation, shift = relative[:3, :3], relative[:3, 3]
         self._bounds.move(relative, self._cluster_centre, self._cluster_radius)
         search = margin + self.proxy.error_bound
@@ -331,7 +334,7 @@ class ProxyCollider:
 
     # -- the SDF's own answers -----------------------------------------------------------------------------------
 
-    def _exact(self, rows: np.ndarray, stats: CoherenceStats) -> Contacts:
+    def _exact(self, rows: np.ndarray, stats: CoherenceStats) -> ContactArrays:
         """The SDF's contacts at the rows ``rows`` of the last call's proxy contacts (see the module docstring)."""
         request = self._exact_request(rows, stats)
         _answer_together(self, [request], stats)
@@ -352,7 +355,7 @@ class ProxyCollider:
             stats.exact_kept += int(k.size)
         return _ExactRequest(faces, tri, bary, status, values, grads, np.flatnonzero(~kept), pending.margin)
 
-    def _exact_contacts(self, request: _ExactRequest) -> Contacts:
+    def _exact_contacts(self, request: _ExactRequest) -> ContactArrays:
         """The contacts of an answered request (world frame), the SDF's new answers stored."""
         r, a = request, request.asked
         if a.size:
@@ -411,17 +414,20 @@ class ProxyCollider:
         stats.exact_points += len(points)
         return value_and_grad_numpy(self.sdf, points, self._dtype)
 
-    def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> Contacts:
+    def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> ContactArrays:
         """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""
         rotation, shift = sdf_pose[:3, :3], sdf_pose[:3, 3]
-        dtype = self.vertices.dtype
-        as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(dtype)  # noqa: E731
-        return Contacts(points=as_t(points @ rotation.T + shift), depths=as_t(depths), normals=as_t(normals @ rotation.T),
-                        triangles=torch.from_numpy(self._face_id[faces]), bary=as_t(bary),
-                        n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+        return ContactArrays(points @ rotation.T + shift, depths, normals @ rotation.T, self._face_id[faces], bary,
+                             n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
 
 
 def exact_contacts_together(requests) -> list[Contacts]:
+    """:meth:`ProxyCollider.exact_contacts` for several colliders at once (see :func:`exact_arrays_together`)."""
+    arrays = exact_arrays_together(requests)
+    return [a.to_contacts(collider.vertices.dtype) for (collider, _), a in zip(requests, arrays)]
+
+
+def exact_arrays_together(requests) -> list[ContactArrays]:
     """:meth:`ProxyCollider.exact_contacts` for several colliders at once (``requests``: (collider, rows (R,)) pairs,
     each collider a ProxyCollider or a CoherentCollider on one, called ``deferred`` first): the colliders that answer
     on the same SDF and proxy, in the same way, ask the SDF together, one query for all their faces (and one for all their polishing steps), as a step's pairs
@@ -437,7 +443,7 @@ def exact_contacts_together(requests) -> list[Contacts]:
     for members in groups.values():
         colliders = [requests[i][0] for i in members]
         stats = [CoherenceStats() for _ in members]
-        asked = [c._exact_request(np.asarray(torch.as_tensor(requests[i][1]).cpu(), dtype=np.int64).reshape(-1), s)
+        asked = [c._exact_request(_row_indices(requests[i][1]), s)
                  for c, i, s in zip(colliders, members, stats)]
         _answer_together(colliders[0], asked, stats[0])
         for i, collider, request, s in zip(members, colliders, asked, stats):
@@ -612,6 +618,13 @@ def _morton(q: np.ndarray) -> np.ndarray:
         for axis in range(3):
             code |= ((q[:, axis] >> bit) & 1) << (3 * bit + (2 - axis))
     return code
+
+
+def _row_indices(rows) -> np.ndarray:
+    """Rows given as a tensor, an array or a list, as int64 (R,)."""
+    if isinstance(rows, torch.Tensor):
+        rows = rows.detach().cpu().numpy()
+    return np.asarray(rows, dtype=np.int64).reshape(-1)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -369,25 +369,13 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.concatenate([normals, t1, t2], axis=1)
 
 
-def contact_rows(arrays: tuple[np.ndarray, np.ndarray, np.ndarray], keep: np.ndarray, geoms: tuple[int, int]) -> ContactRows:
-    """MuJoCo rows of contacts given as :func:`as_numpy`'s (points, depths, normals), world frame, at the indices ``keep``."""
-    points, depths, normals = (a[keep] for a in arrays)
+def contact_rows(contacts, keep: np.ndarray, geoms: tuple[int, int]) -> ContactRows:
+    """MuJoCo rows of ``contacts`` (:class:`zoo.collision.ContactArrays`, world frame) at the indices ``keep``."""
+    points, depths, normals = contacts.points[keep], contacts.depths[keep], contacts.normals[keep]
     # the mesh point lies at depth d along the SDF's normal from the SDF's surface: the surface is at p - d n
     pos = points - 0.5 * depths[:, None] * normals
     geom = np.tile(np.asarray(geoms, dtype=np.int32), (len(keep), 1))
     return ContactRows(pos=pos, dist=depths, frame=tangent_frames(normals), geom=geom)
-
-
-def as_numpy(contacts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points (K, 3), depths (K,), unit normals (K, 3)) of a zoo.Contacts as float64 arrays."""
-    def arr(t):
-        return np.asarray(torch.as_tensor(t).detach().cpu(), dtype=np.float64)
-
-    normals = arr(contacts.normals)
-    norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    valid = norm[:, 0] > 0
-    normals[valid] /= norm[valid]
-    return arr(contacts.points), arr(contacts.depths), normals
 
 
 def add_contacts(model, data, rows: ContactRows, params) -> int:

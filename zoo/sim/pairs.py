@@ -8,7 +8,7 @@
 * :class:`SegmentPair`: a sphere or capsule, answered in closed form along its axis (:func:`segment_contacts`, every
   such pair of an SDF body in one set of queries).
 
-Each gives its contacts at a step as ``(zoo.Contacts in the world frame, their faces' world normals (K, 3))``, or
+Each gives its contacts at a step as ``(ContactArrays in the world frame, their faces' world normals (K, 3))``, or
 ``(None, None)``; :func:`make_pair` builds the right one for a surface.
 """
 
@@ -23,6 +23,7 @@ import torch
 
 import zoo
 
+from ..collision import ContactArrays
 from ..contact_filters import GRAZING_COS, SEPARATED_COS
 from ..geometry import face_normals, invert_pose
 from .contacts import MERGE_CELL, REFINE_CELLS, refine_near, refine_to_size, refined_pieces
@@ -167,7 +168,7 @@ class Pair:
         return math.sqrt(gap @ gap) - radius - self.bounding_radius > margin
 
     def collide(self, t_sdf: np.ndarray, t_other: np.ndarray, margin: float, closing=None):
-        """Its contacts at the poses ``t_sdf``, ``t_other`` (4, 4) within ``margin``: (zoo.Contacts in the world
+        """Its contacts at the poses ``t_sdf``, ``t_other`` (4, 4) within ``margin``: (zoo.collision.ContactArrays in the world
         frame, their faces' world normals (K, 3)), or (None, None). ``closing``: the bodies' relative motion
         (:class:`zoo.contact_filters.Closing`), for a collider that keeps only what can close in time."""
         raise NotImplementedError
@@ -192,7 +193,7 @@ class PlanePair(Pair):
 
     def collide(self, t_sdf, t_plane, margin, closing=None):
         sdf_body = self.sdf_body
-        plane_from_sdf = invert_pose(torch.from_numpy(t_plane)).numpy() @ t_sdf
+        plane_from_sdf = invert_pose(t_plane) @ t_sdf
         corners = cube_corners(sdf_body.lo, sdf_body.hi) @ plane_from_sdf[:3, :3].T + plane_from_sdf[:3, 3]
         if corners[:, 2].min() > margin:
             return None, None
@@ -204,7 +205,7 @@ class PlanePair(Pair):
         lo = np.floor((corners[:, :2].min(axis=0) - margin) / cell).astype(np.int64)
         hi = np.ceil((corners[:, :2].max(axis=0) + margin) / cell).astype(np.int64)
         vertices, faces = _plane_patch(lo, hi, cell)
-        sdf_from_plane = invert_pose(torch.from_numpy(plane_from_sdf)).numpy()
+        sdf_from_plane = invert_pose(plane_from_sdf)
         local = vertices @ sdf_from_plane[:3, :3].T + sdf_from_plane[:3, 3]
         return _collide_in_sdf_frame(self, local, faces, np.arange(len(faces)), t_sdf, margin)
 
@@ -263,7 +264,7 @@ class NearMeshPair(SurfacePair):
         if self.boxes_apart(t_sdf, t_other, margin):
             return None, None
         sdf_body = self.sdf_body
-        sdf_from_mesh = invert_pose(torch.from_numpy(t_sdf)).numpy() @ t_other  # rigid: a transpose, not a general inverse
+        sdf_from_mesh = invert_pose(t_sdf) @ t_other
         local = self.vertices @ sdf_from_mesh[:3, :3].T + sdf_from_mesh[:3, 3]
         max_edge = sdf_body.max_edge if self.settings.refine else math.inf
         local, faces, origin = refine_near(local, self.faces, sdf_body.lo - margin, sdf_body.hi + margin, max_edge)
@@ -285,13 +286,12 @@ class RefinedMesh:
     cover: FaceCover
     normals: np.ndarray
 
-    def surface_faces(self, triangles, bary) -> torch.Tensor:
+    def surface_faces(self, triangles: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """(K,) int64 the surface's own face that holds each point ``bary`` (K, 3) of the faces ``triangles`` (K,)."""
-        triangles, bary = np.asarray(triangles, dtype=np.int64), np.asarray(bary, dtype=np.float64)
         if self.cover.one_each:
-            return torch.as_tensor(self.cover.members[triangles])
+            return self.cover.members[triangles]
         points = np.einsum("kv,kvc->kc", bary, self.vertices[self.faces[triangles]])
-        return torch.as_tensor(self.cover.input_faces(triangles, points))
+        return np.asarray(self.cover.input_faces(triangles, points), dtype=np.int64)
 
 
 @dataclass(kw_only=True)
@@ -318,8 +318,8 @@ class MeshPair(SurfacePair):
             return None, None
         if closing is not None and getattr(self.collider, "thin", None) is not None:
             self.collider.thin = replace(self.collider.thin, closing=closing)
-        contacts = self.collider(torch.from_numpy(t_sdf), torch.from_numpy(t_other), margin=margin)
-        mesh_normals = self.refined.normals[np.asarray(contacts.triangles)] @ t_other[:3, :3].T  # (K, 3)
+        contacts = self.collider.collide_arrays(t_sdf, t_other, margin)
+        mesh_normals = self.refined.normals[contacts.triangles] @ t_other[:3, :3].T  # (K, 3)
         if not self.deferred:  # a deferred pair's are named when the SDF answers them
             contacts.triangles = self.refined.surface_faces(contacts.triangles, contacts.bary)
         return contacts, mesh_normals
@@ -372,7 +372,7 @@ def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) ->
     for pairs in by_body.values():
         sdf_body, proxy = pairs[0][0].sdf_body, pairs[0][0].proxy
         t_sdf = body_pose(data, sdf_body.body)
-        sdf_from_world = invert_pose(torch.from_numpy(t_sdf)).numpy()
+        sdf_from_world = invert_pose(t_sdf)
         ends = []
         for pair, _, t_geom in pairs:
             local = sdf_from_world @ t_geom
@@ -398,11 +398,9 @@ def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) ->
             points = centres[rows] - pair.radius * normals[rows]  # its point deepest in the SDF
             normals_world = normals[rows] @ rotation.T
             k = len(rows)
-            found[id(pair)] = (zoo.Contacts(
-                points=torch.as_tensor(points @ rotation.T + origin), depths=torch.as_tensor(depths[rows]),
-                normals=torch.as_tensor(normals_world), triangles=torch.full((k,), -1, dtype=torch.long),
-                bary=torch.zeros(k, 3, dtype=torch.float64), n_triangles=0, n_candidates=k, method="closed-form"),
-                normals_world)
+            found[id(pair)] = (ContactArrays(points @ rotation.T + origin, depths[rows], normals_world,
+                                             np.full(k, -1, dtype=np.int64), np.zeros((k, 3)), n_triangles=0,
+                                             n_candidates=k, method="closed-form"), normals_world)
     return found
 
 
@@ -415,9 +413,10 @@ def _collide_in_sdf_frame(pair: Pair, local: np.ndarray, faces: np.ndarray, orig
     world = torch.as_tensor(t_sdf, dtype=torch.float32)  # the mesh is already in the SDF's frame
     contacts = zoo.collide(pair.sdf_body.sdf, mesh, sdf_pose=world, mesh_pose=world, margin=margin,
                            method=pair.settings.method_for(pair.sdf_body.sdf))
-    mesh_normals = face_normals(local[faces[np.asarray(contacts.triangles)]]) @ t_sdf[:3, :3].T  # (K, 3)
-    contacts.triangles = torch.as_tensor(origin)[contacts.triangles]
-    return contacts, mesh_normals
+    arrays = ContactArrays.from_contacts(contacts)
+    mesh_normals = face_normals(local[faces[arrays.triangles]]) @ t_sdf[:3, :3].T  # (K, 3)
+    arrays.triangles = origin[arrays.triangles]
+    return arrays, mesh_normals
 
 
 def _sdf_ball(sdf_body: SdfBody, t_sdf: np.ndarray) -> tuple[np.ndarray, float]:

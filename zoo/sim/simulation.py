@@ -135,7 +135,6 @@ class Simulation:
         self.bodies: dict[str, Body] = {}
         self.attached: dict[str, object] = {}  # SDFs given for bodies of the MJCF
         self.log: list[StepRecord] = []
-        self.contacts = None
         self.model = self.data = self.world = None
         # what a scene file says of the run (zoo.sim.scene): its name, length, bodies' sources, camera, file
         self.name, self.seconds, self.labels, self.camera, self.scene_path = "simulation", 1.0, {}, None, None
@@ -273,7 +272,6 @@ class Simulation:
         warnings = self._new_warnings()
         if stats.dropped:
             warnings.append(f"contact buffer full: {stats.dropped} contacts dropped")
-        self.contacts = self.world.contacts
         self.log.append(StepRecord(
             time=float(d.time), contacts=stats.contacts, raw_contacts=stats.raw_contacts,
             max_penetration=stats.max_penetration, collide_s=stats.collide_s, step_s=time.perf_counter() - t0,
@@ -285,6 +283,11 @@ class Simulation:
             self.log[-1].warnings.append(
                 f"deep penetration {stats.max_penetration * 1e3:.3g} mm, over a quarter of the thinnest SDF body: it may "
                 "pass through a thin mesh (use a smaller dt or a larger solref time constant)")
+
+    @property
+    def contacts(self):
+        """``zoo.Contacts`` of the last step that went into MuJoCo's solver (None before the model is built)."""
+        return None if self.world is None else self.world.contacts
 
     def _new_warnings(self) -> list[str]:
         import mujoco

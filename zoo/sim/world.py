@@ -40,11 +40,12 @@ import torch
 
 import zoo
 
+from ..collision import ContactArrays
 from ..contact_filters import GRAZING_COS, SEPARATED_COS, Closing, usable_rows
 from ..errors import InputError
 from ..geometry import cross
 from ..validation import non_negative_float
-from .contacts import add_contacts, as_numpy, contact_rows, reduce_contacts
+from .contacts import add_contacts, contact_rows, reduce_contacts
 from .geoms import (
     body_geoms,
     body_pose,
@@ -67,16 +68,12 @@ TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within th
 
 @dataclass
 class PairContacts:
-    """One pair's contacts at a step (world frame) and the rows of them MuJoCo can use: ``points`` (K, 3),
-    ``depths`` (K,), ``normals`` (K, 3) (the SDF's, as :func:`as_numpy` gives them), ``mesh_normals`` (K, 3) their
-    mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows kept so far, ``reduced`` whether
-    those are already the reduction's."""
+    """One pair's contacts at a step (:class:`zoo.collision.ContactArrays`, world frame) and the rows of them MuJoCo
+    can use: ``mesh_normals`` (K, 3) their mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows
+    kept so far, ``reduced`` whether those are already the reduction's."""
 
     pair: Pair
-    contacts: object  # zoo.Contacts
-    points: np.ndarray
-    depths: np.ndarray
-    normals: np.ndarray
+    contacts: ContactArrays
     mesh_normals: np.ndarray
     usable: np.ndarray
     reduced: bool = False
@@ -205,7 +202,7 @@ class World:
         if unknown:
             raise InputError(f"surfaces names {sorted(unknown)}, which are not SDF bodies; SDF bodies: {sorted(self.bodies)}")
         self.pairs = self._pairs(include, surfaces)
-        self.contacts = _concat_contacts([])
+        self._contact_arrays, self._contacts = ContactArrays.empty(), None  # the last step's; as zoo.Contacts when asked
         self.contact_geoms = np.zeros((0, 2), dtype=np.int32)
         self.stats = StepStats(margin=self.margin)
         self._hooks = 0
@@ -356,9 +353,17 @@ class World:
         stats.contacts, stats.dropped = added, wanted - added
         stats.collide_s = time.perf_counter() - start
         self.stats = stats
-        self.contacts = _concat_contacts(collected)
+        self._contact_arrays, self._contacts = ContactArrays.concat(collected), None
         self.contact_geoms = np.concatenate(geoms) if geoms else np.zeros((0, 2), dtype=np.int32)
         return added
+
+    @property
+    def contacts(self) -> zoo.Contacts:
+        """The contacts that went into MuJoCo's solver at the last detection (world frame, float64), made
+        ``zoo.Contacts`` when first asked: a step keeps them as arrays."""
+        if self._contacts is None:
+            self._contacts = self._contact_arrays.to_contacts()
+        return self._contacts
 
     def pair(self, sdf_body: str, other_body: str) -> Pair:
         """The first pair of SDF body ``sdf_body`` with a geom (or the surface) of body ``other_body``."""
@@ -422,16 +427,15 @@ class World:
             if closing is None:
                 closing = self._closing(pair, data, velocities)
             usable = self._usable(pair, contacts, mesh_normals, closing)
-            stats.raw_contacts += len(usable.depths)
+            stats.raw_contacts += len(usable.contacts)
             found.append(self._reduced_on_proxy(usable))
         for found_pair in self.exact_answers(found):
             keep = found_pair.usable if found_pair.reduced else self._reduced(found_pair)
             if not len(keep):
                 continue
-            r = contact_rows((found_pair.points, found_pair.depths, found_pair.normals), keep,
-                             (found_pair.pair.sdf_body.geom, found_pair.pair.geom))
+            r = contact_rows(found_pair.contacts, keep, (found_pair.pair.sdf_body.geom, found_pair.pair.geom))
             rows.append((r, found_pair.pair.params))
-            collected.append(_select(found_pair.contacts, keep))
+            collected.append(found_pair.contacts.take(keep))
             geoms.append(r.geom)
             deepest = max(deepest, -float(r.dist.min()))
         stats.max_penetration = deepest
@@ -460,9 +464,9 @@ class World:
     def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts:
         """The pair's contacts (at least one) with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`):
         facing their faces, and touching or closing within the step."""
-        points, depths, normals = as_numpy(contacts)
-        usable = usable_rows(points, depths, normals, mesh_normals, *closing, GRAZING_COS, SEPARATED_COS)
-        return PairContacts(pair, contacts, points, depths, normals, mesh_normals, np.flatnonzero(usable))
+        usable = usable_rows(contacts.points, contacts.depths, contacts.normals, mesh_normals, *closing, GRAZING_COS,
+                             SEPARATED_COS)
+        return PairContacts(pair, contacts, mesh_normals, np.flatnonzero(usable))
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
@@ -477,7 +481,8 @@ class World:
         keep = found.usable
         if not self.reduce or not len(keep):
             return keep
-        return keep[reduce_contacts(found.points[keep], found.depths[keep], found.normals[keep], found.mesh_normals[keep],
+        c = found.contacts
+        return keep[reduce_contacts(c.points[keep], c.depths[keep], c.normals[keep], found.mesh_normals[keep],
                                     merge_tol=found.pair.sdf_body.merge_distance)]
 
     @staticmethod
@@ -485,21 +490,20 @@ class World:
         """``found`` with the SDF's own contacts in place of the proxy's where a pair's proxy chose them (at its usable
         rows, those whose SDF depth is beyond the margin dropped, every row of the rest usable): the pairs of a step
         on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
-        from ..proxy_collider import exact_contacts_together
+        from ..proxy_collider import exact_arrays_together
 
         deferred = [i for i, f in enumerate(found) if len(f.usable) and f.pair.deferred]
         if not deferred:
             return found
         found = list(found)
-        answers = exact_contacts_together([(found[i].pair.collider, found[i].usable) for i in deferred])
+        answers = exact_arrays_together([(found[i].pair.collider, found[i].usable) for i in deferred])
         for i, contacts in zip(deferred, answers):
             asked = found[i]
             # the answers keep the asked rows' order, less those beyond the margin; a call answers a face once
-            answered = np.isin(np.asarray(asked.contacts.triangles)[asked.usable], np.asarray(contacts.triangles))
+            answered = np.isin(asked.contacts.triangles[asked.usable], contacts.triangles)
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
-            found[i] = PairContacts(asked.pair, contacts, *as_numpy(contacts), mesh_normals, np.arange(len(contacts)),
-                                    asked.reduced)
+            found[i] = PairContacts(asked.pair, contacts, mesh_normals, np.arange(len(contacts)), asked.reduced)
         return found
 
 # -- helpers ---------------------------------------------------------------------------------------
@@ -514,28 +518,6 @@ def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
 def _length(v: np.ndarray) -> float:
     """|v| of a 3-vector (``np.linalg.norm``'s checks cost more than its arithmetic here)."""
     return math.sqrt(float(v @ v))
-
-
-def _select(contacts, keep: np.ndarray):
-    idx = torch.as_tensor(keep, dtype=torch.long)
-    return zoo.Contacts(points=contacts.points[idx], depths=contacts.depths[idx], normals=contacts.normals[idx],
-                        triangles=contacts.triangles[idx], bary=contacts.bary[idx], n_triangles=contacts.n_triangles,
-                        n_candidates=contacts.n_candidates, method=contacts.method, timings=contacts.timings)
-
-
-def _concat_contacts(parts):
-    if not parts:
-        z = torch.zeros(0, 3)
-        return zoo.Contacts(points=z, depths=torch.zeros(0), normals=z, triangles=torch.zeros(0, dtype=torch.long), bary=z)
-    if len(parts) == 1:
-        return parts[0]
-
-    def cat(key):
-        return torch.cat([getattr(p, key).to(parts[0].points.dtype) if key != "triangles" else p.triangles for p in parts])
-
-    return zoo.Contacts(points=cat("points"), depths=cat("depths"), normals=cat("normals"), triangles=cat("triangles"),
-                        bary=cat("bary"), n_triangles=sum(p.n_triangles for p in parts),
-                        n_candidates=sum(p.n_candidates for p in parts), method=parts[0].method)
 
 
 __all__ = ["attach", "World", "PairContacts", "StepStats"]
