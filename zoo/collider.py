@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Protocol, runtime_checkable
 
+import numpy as np
 import torch
 
 from .bounds import LIPSCHITZ
@@ -101,11 +102,13 @@ def motion_lipschitz(sdf) -> float:
     return LIPSCHITZ if isinstance(sdf, (Sphere, Box, Torus, Capsule)) else LEARNED_LIPSCHITZ
 
 
-def moved_along_normal(value: torch.Tensor, normal: torch.Tensor, tri: torch.Tensor, then: torch.Tensor,
-                       bary: torch.Tensor) -> torch.Tensor:
+def moved_along_normal(value, normal, tri, then, bary):
     """A kept answer's depth (N,) now: ``value`` (N,) at barycentrics ``bary`` (N, 3) of faces that were at ``then``
     (N, 3, 3) and are now at ``tri`` (N, 3, 3), moved to first order along its unit ``normal`` (N, 3) (unchanged where
-    the normal is NaN: none known)."""
+    the normal is NaN: none known). Torch tensors or numpy arrays alike (the same kind back)."""
+    if isinstance(value, np.ndarray):
+        shift = np.einsum("nv,nvc->nc", bary, tri) - np.einsum("nv,nvc->nc", bary, then)
+        return value + np.nan_to_num((shift * normal).sum(axis=-1))
     shift = bary_to_points(tri, bary) - bary_to_points(then, bary)
     return value + torch.nan_to_num((shift * normal).sum(dim=-1))
 

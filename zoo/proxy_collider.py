@@ -182,6 +182,7 @@ class ProxyCollider:
             identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
             self._compiled_search(self._search_call(identity[:3, :3], identity[:3, 3], self.margin, self.margin,
                                                     n_clusters=0), CoherenceStats())
+            self._compiled_polish(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), CoherenceStats())
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
@@ -320,8 +321,7 @@ class ProxyCollider:
             missed = int(counts["missing"])
             if not missed:
                 break
-            missing = out.missing[:min(missed, out.missing.size)]  # then the reads there answer
-            self.proxy.make_ready(missing[missing >= 0], coarse=-1 - missing[missing < 0])
+            self._make_ready(out.missing, missed)
             retry = True
         stats.faces_near, stats.faces_skipped = int(counts["faces_near"]), int(counts["faces_skipped"])
         stats.candidates, stats.warm, stats.cold = int(counts["candidates"]), int(counts["warm"]), int(counts["cold"])
@@ -331,6 +331,12 @@ class ProxyCollider:
         n = int(counts["out"])
         return ProxyAnswers(out.face[:n].copy(), out.tri[:n].copy(), out.bary[:n].copy(), out.value[:n].copy(),
                             out.grad[:n].copy(), out.status[:n].copy())
+
+    def _make_ready(self, missing: np.ndarray, missed: int) -> None:
+        """Bake the bricks a compiled pass recorded in ``missing`` (its first ``missed``, as
+        :func:`zoo.proxy_kernel.read` writes them), so that the reads there answer when the pass is made again."""
+        missing = missing[:min(missed, missing.size)]
+        self.proxy.make_ready(missing[missing >= 0], coarse=-1 - missing[missing < 0])
 
     # -- the SDF's own answers -----------------------------------------------------------------------------------
 
@@ -402,12 +408,33 @@ class ProxyCollider:
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the
         SDF's gradient there), as far as the lowest of ``POLISH_SAMPLES`` points along it on the proxy (one read), and
         the SDF's value and gradient at that point (one query): -> bary (P, 3), values (P,), gradients (P, 3) there."""
-        direction, reach = descent_segment(tri, bary, g)
-        t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
-        along = on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
-        values = counted_read(self.proxy, np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0].reshape(len(tri), -1)
-        end = along[np.arange(len(tri)), values.argmin(axis=1)]
+        if self.kernel == "numba":
+            end = self._compiled_polish(tri, bary, g, stats)
+        else:
+            direction, reach = descent_segment(tri, bary, g)
+            t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
+            along = on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
+            values = counted_read(self.proxy, np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0]
+            end = along[np.arange(len(tri)), values.reshape(len(tri), -1).argmin(axis=1)]
         return (end, *self._sdf_at(np.einsum("pv,pvc->pc", end, tri), stats))
+
+    def _compiled_polish(self, tri, bary, g, stats: CoherenceStats) -> np.ndarray:
+        """:meth:`_polish`'s ends (P, 3) as one compiled pass (:func:`zoo.proxy_kernel.polish_ends`), the bricks its
+        reads met not ready made ready and the pass made again."""
+        from . import proxy_kernel as kernel
+
+        if self._buffers is None:
+            self._buffers = kernel.kernel_buffers(len(self._v), len(self._f))
+        out = self._buffers
+        while True:
+            out.counts[:] = 0
+            ends = kernel.polish_ends(tri, bary, g, POLISH_SAMPLES, self.proxy.grid(), out.missing, out.counts[0])
+            missed = int(out.counts[0]["missing"])
+            if not missed:
+                break
+            self._make_ready(out.missing, missed)
+        stats.proxy_reads += int(out.counts[0]["reads"])
+        return ends
 
     def _sdf_at(self, points: np.ndarray, stats: CoherenceStats) -> tuple[np.ndarray, np.ndarray]:
         """The SDF's values (N,) and gradients (N, 3), float64, at ``points`` (N, 3) in its frame, in one query."""
@@ -527,8 +554,7 @@ class _SDFAnswers:
         """The answers of the faces ``faces`` (K,) now at ``tri`` (K, 3, 3), their values moved to first order along
         their normals: bary (K, 3), values (K,), gradients (K, 3)."""
         b, g = self.bary[faces], self.grad[faces]
-        moved = moved_along_normal(*(torch.from_numpy(a) for a in (self.value[faces], _unit(g), tri, self.at[faces], b)))
-        return b, moved.numpy(), g
+        return b, moved_along_normal(self.value[faces], _unit(g), tri, self.at[faces], b), g
 
     def store(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
         self.bary[faces], self.value[faces], self.grad[faces], self.at[faces] = bary, values, grads, tri
@@ -575,8 +601,8 @@ class _CarriedSearch:
     def carried(self, tri: np.ndarray) -> ProxyAnswers:
         """The answers with the faces now at ``tri`` (H, 3, 3) (the SDF's frame)."""
         a = self.answers
-        values = moved_along_normal(*(torch.from_numpy(x) for x in (a.values, _unit(a.grads), tri, a.tri, a.bary)))
-        return ProxyAnswers(a.faces, tri, a.bary, values.numpy(), a.grads, a.status)
+        return ProxyAnswers(a.faces, tri, a.bary, moved_along_normal(a.values, _unit(a.grads), tri, a.tri, a.bary),
+                            a.grads, a.status)
 
 
 # -- geometry in numpy (a step's few faces: numpy's per-call cost is a fraction of torch's) ---------------------------

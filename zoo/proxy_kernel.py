@@ -388,6 +388,37 @@ def search_faces(call, mesh, grid, memory, out):
         cluster_key[c] = min(cluster_key[c], face_key[near[i]])
 
 
+@njit(cache=True, error_model="numpy")
+def polish_ends(tri, bary, grads, samples, grid, missing, counts):
+    """``ProxyCollider._polish``'s step for P faces, compiled: from ``bary`` (P, 3) on ``tri`` (P, 3, 3) (the SDF's
+    frame) along the steepest descent of the SDF's gradient ``grads`` (P, 3) there (:func:`_descent_segment`), the
+    lowest on the proxy ``grid`` of ``samples`` points evenly spaced up to the segment's end: their barycentrics
+    (P, 3). A read that meets a brick not ready is recorded in ``missing`` (see :func:`read`): the caller makes it
+    ready and calls again."""
+    n = tri.shape[0]
+    ends = np.empty((n, 3))
+    t = np.empty((3, 3))
+    b = np.empty(3)
+    direction = np.empty(3)
+    for i in range(n):
+        for k in range(3):
+            b[k] = bary[i, k]
+            for a in range(3):
+                t[k, a] = tri[i, k, a]
+        reach = _descent_segment(t, b, grads[i, 0], grads[i, 1], grads[i, 2], direction)
+        best = math.inf
+        ends[i, 0], ends[i, 1], ends[i, 2] = b[0], b[1], b[2]
+        for k in range(1, samples + 1):
+            step = (k / samples) * reach
+            s0, s1, s2 = _on_simplex(b[0] + step * direction[0], b[1] + step * direction[1], b[2] + step * direction[2])
+            value = read(s0 * t[0, 0] + s1 * t[1, 0] + s2 * t[2, 0], s0 * t[0, 1] + s1 * t[1, 1] + s2 * t[2, 1],
+                         s0 * t[0, 2] + s1 * t[1, 2] + s2 * t[2, 2], grid, missing, counts)[0]
+            if value < best:  # the first of equals, as numpy's argmin
+                best = value
+                ends[i, 0], ends[i, 1], ends[i, 2] = s0, s1, s2
+    return ends
+
+
 @njit(cache=True)
 def near_deepest_per_cell(cells, values, band):
     """The rows (N,) whose ``values`` (N,) are within ``band`` of the least of the rows sharing their cell ``cells``
