@@ -329,8 +329,8 @@ class ProxyCollider:
         searched = int(counts["searched"])
         self._last_bary[out.searched_face[:searched]] = out.searched_bary[:searched]
         n = int(counts["out"])
-        return ProxyAnswers(out.face[:n].copy(), out.tri[:n].copy(), out.bary[:n].copy(), out.value[:n].copy(),
-                            out.grad[:n].copy(), out.status[:n].copy())
+        # views: a search's answers stay as it wrote them until the next search, which replaces what carried them
+        return ProxyAnswers(out.face[:n], out.tri[:n], out.bary[:n], out.value[:n], out.grad[:n], out.status[:n])
 
     def _make_ready(self, missing: np.ndarray, missed: int) -> None:
         """Bake the bricks a compiled pass recorded in ``missing`` (its first ``missed``, as
