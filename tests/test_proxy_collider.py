@@ -244,7 +244,7 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
     from zoo.contact_filters import GRAZING_COS, SEPARATED_COS, Closing
     from zoo.geometry import face_normals
     from zoo.proxy_collider import Thinning
-    from zoo.sim.contacts import reduce_contacts
+    from zoo.sim.reduction import reduce_contacts
 
     sphere = zoo.Sphere(0.05)
     vertices, faces = plane_mesh(max_edge=0.004)

@@ -17,7 +17,8 @@ import zoo.sim  # noqa: E402
 from sdfzoo.benches import sim_check, stress_sim  # noqa: E402
 from zoo.errors import InputError  # noqa: E402
 from zoo.geometry import face_normals  # noqa: E402
-from zoo.sim.contacts import reduce_contacts, refine_near, refine_to_size  # noqa: E402
+from zoo.sim.contacts import refine_near, refine_to_size  # noqa: E402
+from zoo.sim.reduction import reduce_contacts  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

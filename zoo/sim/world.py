@@ -45,7 +45,7 @@ from ..contact_filters import GRAZING_COS, SEPARATED_COS, Closing, usable_rows
 from ..errors import InputError
 from ..geometry import cross
 from ..validation import non_negative_float
-from .contacts import add_contacts, contact_rows, reduce_contacts
+from .contacts import add_contacts, contact_rows
 from .geoms import (
     body_geoms,
     body_pose,
@@ -60,6 +60,7 @@ from .geoms import (
     partner_geoms,
 )
 from .pairs import Pair, PairSettings, SdfBody, SegmentPair, make_pair, segment_contacts
+from .reduction import reduce_contacts
 from .surface import CONTACT_RESOLUTION, surface_mesh
 
 SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
