@@ -385,7 +385,7 @@ class ProxyCollider:
             rows = polish[lower]
             bary[rows], f[rows], g[rows] = b[lower], f1[lower], g1[lower]
         out = np.flatnonzero(status != IN_BAND)
-        for m in np.unique(margin[out]):  # deeper than the band: the method from scratch on the SDF (rare)
+        for m in np.unique(margin[out]) if out.size else ():  # deeper than the band: the method from scratch on the SDF (rare)
             self._from_scratch(out[margin[out] == m], tri, bary, f, g, float(m), stats)
         return bary, f, g
 

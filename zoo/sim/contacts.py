@@ -268,7 +268,9 @@ def _subdivide(polygon: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.nda
 
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """(K, 3) unit normals -> (K, 9) contact frames: normal, then two unit tangents (right-handed)."""
-    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    helper = np.zeros_like(normals)  # x, or y where the normal is near x
+    x_ok = np.abs(normals[:, 0]) < 0.9
+    helper[x_ok, 0], helper[~x_ok, 1] = 1.0, 1.0
     t1 = cross(normals, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = cross(normals, t1)
