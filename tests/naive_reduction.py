@@ -10,23 +10,7 @@ from zoo.sim.contacts import FLAT_COS, MAX_PER_PATCH, MERGE_CELL, PATCH_COS, tan
 
 def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, faces: np.ndarray, merge_tol: float,
                     patch_cos: float = PATCH_COS, flat_cos: float = FLAT_COS, max_per_patch: int = MAX_PER_PATCH) -> np.ndarray:
-    """Indices of the contacts to keep: a manifold of at most ``max_per_patch`` points per patch.
-
-    Args:
-        points (K, 3), depths (K,), normals (K, 3): one pair's contacts (normals: the SDF's).
-        faces: (K, 3) unit normals of the contacts' mesh faces (zeros where degenerate).
-        merge_tol: points closer than this are one point (the deepest is kept): the copies
-            triangles around a vertex give, which an iterative solver scatters by a fraction of
-            their edge.
-        patch_cos: a contact joins the patch of the deepest unassigned contact when their faces'
-            normals are this close (either side): a plane is one patch however the SDF meets it.
-        flat_cos: besides the deepest, a patch keeps only points whose SDF normal is this close to
-            the deepest's: the flat part of the contact (a box's face: four corners), not the rim
-            of a curved one (a sphere deep in a plane keeps one contact, as MuJoCo's own).
-
-    Returns:
-        (R,) int64 indices into the contacts, deepest patch first.
-    """
+    """:func:`zoo.sim.reduction.reduce_contacts` (the same arguments and result) as numpy array expressions."""
     if len(depths) == 0:
         return np.zeros(0, dtype=np.int64)
     order = np.argsort(depths, kind="stable")  # deepest first

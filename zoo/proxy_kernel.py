@@ -420,18 +420,16 @@ def polish_ends(tri, bary, grads, samples, grid, missing, counts):
 
 
 @njit(cache=True)
-def near_deepest_per_cell(cells, values, band):
-    """The rows (N,) whose ``values`` (N,) are within ``band`` of the least of the rows sharing their cell ``cells``
-    (N, 3) int64: their indices (K,), ascending (band 0: the least and its equals). Two passes over an open-addressing
-    table, where sorting the rows by cell would cost more than the rows' other work: each cell's least value, then
-    the rows near it."""
-    n = values.shape[0]
+def first_of_cell(cells):
+    """For each row of ``cells`` (N, 3) int64, the first row (N,) with the same cell: one pass over an open-addressing
+    table, where sorting the rows by cell would cost more than the rows' other work."""
+    n = cells.shape[0]
     size = 16
     while size < 2 * n:
         size *= 2
     mask = size - 1
     slot_row = np.full(size, -1, dtype=np.int64)
-    slot_of = np.empty(n, dtype=np.int64)
+    first = np.empty(n, dtype=np.int64)
     for i in range(n):
         h = (cells[i, 0] * 73856093) ^ (cells[i, 1] * 19349663) ^ (cells[i, 2] * 83492791)
         s = h & mask
@@ -439,17 +437,29 @@ def near_deepest_per_cell(cells, values, band):
             r = slot_row[s]
             if r < 0:
                 slot_row[s] = i
+                first[i] = i
                 break
             if cells[r, 0] == cells[i, 0] and cells[r, 1] == cells[i, 1] and cells[r, 2] == cells[i, 2]:
-                if values[i] < values[r]:
-                    slot_row[s] = i
+                first[i] = r
                 break
             s = (s + 1) & mask
-        slot_of[i] = s
+    return first
+
+
+@njit(cache=True)
+def near_deepest_per_cell(cells, values, band):
+    """The rows (N,) whose ``values`` (N,) are within ``band`` of the least of the rows sharing their cell ``cells``
+    (N, 3) int64: their indices (K,), ascending (band 0: the least and its equals). Two passes: each cell's least
+    value (:func:`first_of_cell` names the cells), then the rows near it."""
+    n = values.shape[0]
+    first = first_of_cell(cells)
+    least = np.empty(n)
+    for i in range(n):
+        least[first[i]] = values[i] if first[i] == i else min(least[first[i]], values[i])
     rows = np.empty(n, dtype=np.int64)
     m = 0
     for i in range(n):
-        if values[i] <= values[slot_row[slot_of[i]]] + band:
+        if values[i] <= least[first[i]] + band:
             rows[m] = i
             m += 1
     return rows[:m]

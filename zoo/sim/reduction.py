@@ -16,6 +16,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ..proxy_kernel import first_of_cell
 from .contacts import FLAT_COS, MAX_PER_PATCH, MERGE_CELL, PATCH_COS
 
 
@@ -78,30 +79,17 @@ def _reduce(points, depths, normals, faces, cell, spread, patch_cos, flat_cos, m
 def _deepest_per_cell(points, depths, cell):
     """The rows (C,) of the deepest contact of each cell of side ``cell`` (the first of equals), deepest first."""
     order = np.argsort(depths, kind="mergesort")
-    n = order.shape[0]
-    size = 16
-    while size < 2 * n:
-        size *= 2
-    mask = size - 1
-    slot_row = np.full(size, -1, dtype=np.int64)
-    keys = np.empty((n, 3), dtype=np.int64)
-    rows = np.empty(n, dtype=np.int64)
-    m = 0
-    for r in order:
+    cells = np.empty((order.shape[0], 3), dtype=np.int64)
+    for i in range(order.shape[0]):
         for a in range(3):
-            keys[r, a] = int(math.floor(points[r, a] / cell))
-        h = (keys[r, 0] * 73856093) ^ (keys[r, 1] * 19349663) ^ (keys[r, 2] * 83492791)
-        s = h & mask
-        while True:
-            other = slot_row[s]
-            if other < 0:
-                slot_row[s] = r
-                rows[m] = r
-                m += 1
-                break
-            if keys[other, 0] == keys[r, 0] and keys[other, 1] == keys[r, 1] and keys[other, 2] == keys[r, 2]:
-                break  # a deeper one holds the cell
-            s = (s + 1) & mask
+            cells[i, a] = int(math.floor(points[order[i], a] / cell))
+    first = first_of_cell(cells)  # in depth order: the first of a cell is its deepest
+    rows = np.empty(order.shape[0], dtype=np.int64)
+    m = 0
+    for i in range(order.shape[0]):
+        if first[i] == i:
+            rows[m] = order[i]
+            m += 1
     return rows[:m]
 
 
