@@ -33,7 +33,7 @@ class NumpyNetwork:
                  smooth_beta, fourier_levels, dtype):
         as_np = lambda t: np.ascontiguousarray(np.asarray(t, dtype=dtype))  # noqa: E731
         self.weights = [as_np(w) for w in weights]
-        self.weights_t = [as_np(np.asarray(w).T) for w in weights]  # the chain rule's: numpy multiplies a transposed view 3x slower
+        self.weights_t = [as_np(np.asarray(w).T) for w in weights]  # the chain rule's: numpy multiplies a transposed view slower
         self.out_weight, self.out_bias = as_np(out_weight), as_np(out_bias)
         self.cloud_b_t, self.codes_1 = as_np(np.asarray(cloud_b).T), as_np(codes_1)
         self.positions, self.codes_t = as_np(positions), as_np(np.asarray(codes).T)

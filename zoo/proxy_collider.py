@@ -304,9 +304,7 @@ class ProxyCollider:
         and the call made again, until none is met."""
         from . import proxy_kernel as kernel
 
-        if self._buffers is None:
-            self._buffers = kernel.kernel_buffers(len(self._v), len(self._f))
-        out, bounds, memory = self._buffers, self._bounds, self._memory()
+        out, bounds, memory = self._kernel_buffers(), self._bounds, self._memory()
         # a pass that met bricks not ready is made again from the same held bounds: the keys it wrote are dropped,
         # so that the answer is the one a proxy with every brick ready gives (not one that depends on the cache)
         kept_keys = None if self.proxy.complete else (bounds.cluster_key.copy(), bounds.face_key.copy())
@@ -331,6 +329,14 @@ class ProxyCollider:
         n = int(counts["out"])
         # views: a search's answers stay as it wrote them until the next search, which replaces what carried them
         return ProxyAnswers(out.face[:n], out.tri[:n], out.bary[:n], out.value[:n], out.grad[:n], out.status[:n])
+
+    def _kernel_buffers(self):
+        """The compiled passes' :class:`zoo.proxy_kernel.KernelBuffers`, made at their first call."""
+        if self._buffers is None:
+            from .proxy_kernel import kernel_buffers
+
+            self._buffers = kernel_buffers(len(self._v), len(self._f))
+        return self._buffers
 
     def _make_ready(self, missing: np.ndarray, missed: int) -> None:
         """Bake the bricks a compiled pass recorded in ``missing`` (its first ``missed``, as
@@ -423,9 +429,7 @@ class ProxyCollider:
         reads met not ready made ready and the pass made again."""
         from . import proxy_kernel as kernel
 
-        if self._buffers is None:
-            self._buffers = kernel.kernel_buffers(len(self._v), len(self._f))
-        out = self._buffers
+        out = self._kernel_buffers()
         while True:
             out.counts[:] = 0
             ends = kernel.polish_ends(tri, bary, g, POLISH_SAMPLES, self.proxy.grid(), out.missing, out.counts[0])
