@@ -116,3 +116,37 @@ def test_a_lower_bound_drops_segments_before_the_sdf_is_asked_and_changes_no_min
 def test_no_segments_give_no_minima():
     found = segment_minima(zoo.Sphere(0.05), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), torch.float64)
     assert found.points.shape == (0, 3) and found.owner.shape == (0,)
+
+
+def test_segments_that_barely_moved_keep_their_answer_moved_to_first_order():
+    """A capsule pair with coherence keeps its segment's last SDF answer while the segment moves less than
+    REUSE_FRACTION of the margin (no query), its values moved along their normals: within second order of a fresh
+    search's at the new ends; a larger move, or no coherence, asks the SDF again."""
+    from types import SimpleNamespace
+
+    from zoo.collider import REUSE_FRACTION
+    from zoo.sim.pairs import _segment_answers
+
+    torus = zoo.Torus(0.05, 0.015)
+    margin = 1e-3
+    a, b = np.array([0.04, -0.01, 0.03]), np.array([0.06, 0.012, 0.028])  # above the tube, f about 1.5 cm
+    reach = np.array([0.02])
+
+    def pair(coherence):
+        return SimpleNamespace(sdf_body=SimpleNamespace(sdf=CountingSDF(torus)), last=None, coherence=coherence)
+
+    kept, plain = pair(True), pair(False)
+    for p in (kept, plain):
+        first = _segment_answers([(p, margin, None)], [(a, b)], reach, None)
+        assert p.sdf_body.sdf.calls == 1 + SEGMENT_STEPS and len(first.points)
+        np.testing.assert_allclose(first.points, a + first.params[:, None] * (b - a), atol=1e-15)
+    shift = 0.8 * REUSE_FRACTION * margin * np.array([0.6, -0.5, 0.4]) / np.sqrt(0.77)  # 0.8 of the reuse distance
+    moved = _segment_answers([(kept, margin, None)], [(a + shift, b + shift)], reach, None)
+    assert kept.sdf_body.sdf.calls == 1 + SEGMENT_STEPS  # no query
+    fresh = segment_minima(torus, (a + shift)[None], (b + shift)[None], reach, torch.float64)
+    np.testing.assert_allclose(moved.values.min(), fresh.values.min(), atol=1e-6)
+    np.testing.assert_allclose(moved.points, first.points + shift, atol=1e-15)
+    _segment_answers([(plain, margin, None)], [(a + shift, b + shift)], reach, None)
+    assert plain.sdf_body.sdf.calls == 2 * (1 + SEGMENT_STEPS)  # no coherence: asked again
+    _segment_answers([(kept, margin, None)], [(a + 2 * shift, b + 2 * shift)], reach, None)
+    assert kept.sdf_body.sdf.calls == 2 * (1 + SEGMENT_STEPS)  # 1.6 reuse distances from where it was answered

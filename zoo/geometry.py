@@ -127,6 +127,12 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
+def unit_rows(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3): each vector over its length (numpy), zeros left zero."""
+    length = np.sqrt((v * v).sum(axis=-1, keepdims=True))
+    return v / np.where(length > 0, length, 1.0)
+
+
 def face_normals(triangles: np.ndarray) -> np.ndarray:
     """(K, 3, 3) -> (K, 3) unit normals (numpy); zeros for degenerate (zero-area) triangles."""
     face = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])

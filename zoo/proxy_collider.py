@@ -71,7 +71,7 @@ from .bounds import triangle_reach
 from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved_along_normal
 from .collision import ContactArrays, Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
-from .geometry import face_normals, invert_pose
+from .geometry import face_normals, invert_pose, unit_rows
 from .methods import iterations
 from .proxy import IN_BAND
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
@@ -238,7 +238,7 @@ class ProxyCollider:
         self.last_candidates = torch.from_numpy(self._face_id[found.faces])
         t2 = time.perf_counter()
         if self.deferred:
-            contacts = self._contacts(sdf_pose, found.faces, found.bary, found.points(), found.values, _unit(found.grads))
+            contacts = self._contacts(sdf_pose, found.faces, found.bary, found.points(), found.values, unit_rows(found.grads))
         else:
             contacts = self._exact(np.arange(len(found.faces)), stats)
         contacts.n_candidates = int(stats.candidates)
@@ -373,7 +373,7 @@ class ProxyCollider:
         if a.size:
             self._answers.store(r.faces[a], r.tri[a], r.bary[a], r.values[a], r.grads[a])
         contact = r.values <= r.margin
-        bary, values, normals = r.bary[contact], r.values[contact], _unit(r.grads[contact])
+        bary, values, normals = r.bary[contact], r.values[contact], unit_rows(r.grads[contact])
         return self._contacts(self._pending.sdf_pose, r.faces[contact], bary, np.einsum("kv,kvc->kc", bary, r.tri[contact]),
                               values, normals)
 
@@ -558,7 +558,7 @@ class _SDFAnswers:
         """The answers of the faces ``faces`` (K,) now at ``tri`` (K, 3, 3), their values moved to first order along
         their normals: bary (K, 3), values (K,), gradients (K, 3)."""
         b, g = self.bary[faces], self.grad[faces]
-        return b, moved_along_normal(self.value[faces], _unit(g), tri, self.at[faces], b), g
+        return b, moved_along_normal(self.value[faces], unit_rows(g), tri, self.at[faces], b), g
 
     def store(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
         self.bary[faces], self.value[faces], self.grad[faces], self.at[faces] = bary, values, grads, tri
@@ -605,7 +605,7 @@ class _CarriedSearch:
     def carried(self, tri: np.ndarray) -> ProxyAnswers:
         """The answers with the faces now at ``tri`` (H, 3, 3) (the SDF's frame)."""
         a = self.answers
-        return ProxyAnswers(a.faces, tri, a.bary, moved_along_normal(a.values, _unit(a.grads), tri, a.tri, a.bary),
+        return ProxyAnswers(a.faces, tri, a.bary, moved_along_normal(a.values, unit_rows(a.grads), tri, a.tri, a.bary),
                             a.grads, a.status)
 
 
@@ -657,6 +657,3 @@ def _row_indices(rows) -> np.ndarray:
     return np.asarray(rows, dtype=np.int64).reshape(-1)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.where(norm > 0, norm, 1.0)

@@ -23,13 +23,14 @@ import torch
 
 import zoo
 
+from ..collider import REUSE_FRACTION
 from ..collision import ContactArrays
 from ..contact_filters import GRAZING_COS, SEPARATED_COS
-from ..geometry import face_normals, invert_pose
+from ..geometry import face_normals, invert_pose, unit_rows
 from .contacts import MERGE_CELL, REFINE_CELLS, refine_near, refine_to_size, refined_pieces
 from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import ContactParameters, body_pose, cube_corners, geom_pose
-from .segments import segment_minima
+from .segments import SegmentAnswer, SegmentMinima, segment_minima
 
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
 # copies of a vertex's contact by up to a tenth of the edge)
@@ -214,16 +215,23 @@ class PlanePair(Pair):
 class SegmentPair(Pair):
     """A sphere or capsule: the points within ``radius`` of the segment from -``half_length`` to +``half_length``
     along z of its frame, answered in closed form (:func:`segment_contacts`); ``proxy``: the SDF's
-    ``zoo.proxy.ProxySDF`` whose lower bound culls before the SDF is asked (None: none)."""
+    ``zoo.proxy.ProxySDF`` whose lower bound culls before the SDF is asked (None: none). With ``coherence``, a
+    segment that moved less than ``REUSE_FRACTION`` of the margin relative to the SDF since the SDF answered it keeps
+    that answer (``last``), moved to first order along its normals, as a mesh pair's faces do."""
 
     kind = "segment"
     radius: float
     half_length: float
     proxy: object = None
+    coherence: bool = False
+    last: SegmentAnswer | None = None
 
     @property
     def bounding_radius(self) -> float:
         return self.half_length + self.radius
+
+    def reset(self) -> None:
+        self.last = None
 
     def collide(self, t_sdf, t_other, margin, closing=None):
         raise TypeError("a segment pair's contacts come from segment_contacts, every segment of its SDF body at once")
@@ -380,15 +388,11 @@ def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) ->
             ends.append((local[:3, 3] - axis, local[:3, 3] + axis))
         radii = np.array([pair.radius for pair, _, _ in pairs])
         margins = np.array([margin for _, margin, _ in pairs])
-        dtype = torch.float64 if getattr(sdf_body.sdf, "dtype", None) == torch.float64 else torch.float32
-        lower_bound = None if proxy is None else (lambda p, proxy=proxy: proxy.read_numpy(p)[0] - proxy.error_bound)
-        minima = segment_minima(sdf_body.sdf, np.array([e[0] for e in ends]), np.array([e[1] for e in ends]),
-                                radii + margins, dtype, lower_bound)
+        minima = _segment_answers(pairs, ends, radii + margins, proxy)
         if not len(minima.points):
             continue
         centres, owner, values, grads = minima.points, minima.owner, minima.values, minima.grads
-        length = np.linalg.norm(grads, axis=1, keepdims=True)
-        normals = grads / np.where(length > 0, length, 1.0)
+        normals = unit_rows(grads)
         depths = values - radii[owner]
         rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
         for index, (pair, margin, _) in enumerate(pairs):
@@ -402,6 +406,33 @@ def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) ->
                                              np.full(k, -1, dtype=np.int64), np.zeros((k, 3)), n_triangles=0,
                                              n_candidates=k, method="closed-form"), normals_world)
     return found
+
+
+def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> SegmentMinima:
+    """The points of least f along the pairs' segments (``ends``: (a, b) each, the SDF's frame): each kept answer
+    that still holds (:class:`SegmentPair`'s ``coherence``) carried, the others searched together
+    (:func:`zoo.sim.segments.segment_minima`) and kept for the next steps."""
+    sdf = pairs[0][0].sdf_body.sdf
+    carried, asked = [], []
+    for index, ((pair, margin, _), (a, b)) in enumerate(zip(pairs, ends)):
+        last = pair.last
+        if last is not None and pair.coherence and last.moved(a, b) <= REUSE_FRACTION * margin:
+            carried.append(last.carried(a, b, index))
+        else:
+            asked.append(index)
+    if not asked:
+        return SegmentMinima.concat(carried)
+    dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32
+    lower_bound = None if proxy is None else (lambda p: proxy.read_numpy(p)[0] - proxy.error_bound)
+    a, b = np.array([ends[i][0] for i in asked]), np.array([ends[i][1] for i in asked])
+    found = segment_minima(sdf, a, b, reach[asked], dtype, lower_bound)
+    found.owner = np.asarray(asked, dtype=np.int64)[found.owner]
+    for j, index in enumerate(asked):
+        pair = pairs[index][0]
+        rows = np.flatnonzero(found.owner == index)
+        pair.last = (SegmentAnswer(a[j], b[j], found.params[rows], found.values[rows], found.grads[rows])
+                     if pair.coherence and rows.size else None)
+    return SegmentMinima.concat([*carried, found])
 
 
 def _collide_in_sdf_frame(pair: Pair, local: np.ndarray, faces: np.ndarray, origin: np.ndarray, t_sdf: np.ndarray,

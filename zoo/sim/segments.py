@@ -10,11 +10,14 @@ slopes): the cubic's minimum (exact where f is smooth) and where their tangents 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from ..collider import moved_along_normal
+from ..geometry import unit_rows
 from ..sdf import value_and_grad_numpy
 
 SEGMENT_SAMPLES = 9  # points along a capsule's axis where f is read before the search narrows around the lowest
@@ -25,16 +28,55 @@ SEGMENT_LIPSCHITZ = 2.0  # |grad f| bound used to drop a segment from its sample
 @dataclass
 class SegmentMinima:
     """Points on segments and the SDF there (the SDF's frame): ``points`` (C, 3), ``owner`` (C,) the segment each
-    lies on, ``values`` (C,) and ``grads`` (C, 3) the SDF's value and gradient."""
+    lies on, ``params`` (C,) where along it (0 at a, 1 at b), ``values`` (C,) and ``grads`` (C, 3) the SDF's value and
+    gradient."""
 
     points: np.ndarray
     owner: np.ndarray
+    params: np.ndarray
     values: np.ndarray
     grads: np.ndarray
 
     @classmethod
     def empty(cls) -> SegmentMinima:
-        return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3)))
+        return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+
+    def take(self, rows: np.ndarray) -> SegmentMinima:
+        return SegmentMinima(self.points[rows], self.owner[rows], self.params[rows], self.values[rows], self.grads[rows])
+
+    @classmethod
+    def concat(cls, parts: list[SegmentMinima]) -> SegmentMinima:
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("points", "owner", "params", "values", "grads")))
+
+
+@dataclass
+class SegmentAnswer:
+    """A segment's last answer from the SDF, for the steps it moves less than a reuse distance (a persistent contact):
+    its ends ``a``, ``b`` (3,) then (the SDF's frame) and its points of least f then (``params`` (k,) along a -> b,
+    ``values`` (k,), ``grads`` (k, 3)); k = 0 is never kept (a segment the search dropped is searched again)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    params: np.ndarray
+    values: np.ndarray
+    grads: np.ndarray
+
+    def moved(self, a: np.ndarray, b: np.ndarray) -> float:
+        """How far (m) any point of the segment moved since, now that its ends are ``a``, ``b`` (3,): a point at t moves
+        by (1 - t) da + t db, at most the larger of the two."""
+        return max(math.dist(a, self.a), math.dist(b, self.b))
+
+    def carried(self, a: np.ndarray, b: np.ndarray, owner: int) -> SegmentMinima:
+        """The answer at the segment's new ends, each value moved to first order along its unit normal (the same
+        points along the axis; the gradients kept), as ``owner``'s rows."""
+        k = len(self.params)
+        bary = np.stack([1.0 - self.params, self.params, np.zeros(k)], axis=1)  # the segment as a flat triangle a, b, b
+        now, then = np.broadcast_to(np.stack([a, b, b]), (k, 3, 3)), np.broadcast_to(np.stack([self.a, self.b, self.b]), (k, 3, 3))
+        values = moved_along_normal(self.values, unit_rows(self.grads), now, then, bary)
+        points = a + self.params[:, None] * (b - a)
+        return SegmentMinima(points, np.full(k, owner, dtype=np.int64), self.params.copy(), values, self.grads.copy())
 
 
 def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: torch.dtype,
@@ -89,6 +131,7 @@ def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: 
     return SegmentMinima(
         points=(a[:, None] + params[..., None] * axis[:, None]).reshape(-1, 3)[keep],
         owner=np.repeat(alive, 3)[keep],
+        params=params.reshape(-1)[keep],
         values=np.stack([values[:, ends[0]], low_f, values[:, ends[1]]], axis=1).reshape(-1)[keep],
         grads=np.stack([grads[:, ends[0]], low_g, grads[:, ends[1]]], axis=1).reshape(-1, 3)[keep])
 

@@ -255,7 +255,8 @@ class World:
                 body = int(model.geom_bodyid[geom])
                 if segment is not None:  # a sphere or a capsule: exact, no triangles
                     pairs.append(SegmentPair(sdf_body=sdf_body, body=body, geom=geom, params=params, frame="geom",
-                                             radius=segment[0], half_length=segment[1], proxy=self._proxy_for(sdf_body)))
+                                             radius=segment[0], half_length=segment[1], proxy=self._proxy_for(sdf_body),
+                                             coherence=self.coherence))
                     continue
                 surface = geom_surface(model, geom, self.tolerance)
                 pairs.append(make_pair(sdf_body, body, geom, params, "geom", surface, self.settings,
