@@ -247,9 +247,10 @@ def body_pose(data, body: int) -> np.ndarray:
 
 
 def body_velocity(model, data, body: int) -> np.ndarray:
-    """(6,) linear velocity of the body's origin and its angular velocity, world frame."""
+    """(6,) linear velocity of the body's origin and its angular velocity, world frame (``mjOBJ_XBODY``: the body's
+    frame; ``mjOBJ_BODY`` would give its centre of mass's)."""
     import mujoco
 
     res = np.zeros(6)
-    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, res, 0)
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, body, res, 0)
     return np.concatenate([res[3:], res[:3]])

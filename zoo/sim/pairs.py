@@ -30,7 +30,7 @@ from ..geometry import face_normals, invert_pose, unit_rows
 from .contacts import MERGE_CELL, REFINE_CELLS, refine_near, refine_to_size, refined_pieces
 from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import ContactParameters, body_pose, cube_corners, geom_pose
-from .segments import SegmentAnswer, SegmentMinima, segment_minima
+from .segments import SegmentAnswer, SegmentMinima, carried_minima, segment_minima
 
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
 # copies of a vertex's contact by up to a tenth of the edge)
@@ -413,15 +413,15 @@ def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> Segme
     that still holds (:class:`SegmentPair`'s ``coherence``) carried, the others searched together
     (:func:`zoo.sim.segments.segment_minima`) and kept for the next steps."""
     sdf = pairs[0][0].sdf_body.sdf
-    carried, asked = [], []
+    kept, asked = [], []
     for index, ((pair, margin, _), (a, b)) in enumerate(zip(pairs, ends)):
         last = pair.last
-        if last is not None and pair.coherence and last.moved(a, b) <= REUSE_FRACTION * margin:
-            carried.append(last.carried(a, b, index))
-        else:
-            asked.append(index)
+        reuse = last is not None and pair.coherence and last.moved(a, b) <= REUSE_FRACTION * margin
+        (kept if reuse else asked).append(index)
+    carried = carried_minima([pairs[i][0].last for i in kept], np.array([ends[i][0] for i in kept]).reshape(-1, 3),
+                             np.array([ends[i][1] for i in kept]).reshape(-1, 3), np.asarray(kept, dtype=np.int64))
     if not asked:
-        return SegmentMinima.concat(carried)
+        return carried
     dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32
     lower_bound = None if proxy is None else (lambda p: proxy.read_numpy(p)[0] - proxy.error_bound)
     a, b = np.array([ends[i][0] for i in asked]), np.array([ends[i][1] for i in asked])
@@ -432,7 +432,7 @@ def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> Segme
         rows = np.flatnonzero(found.owner == index)
         pair.last = (SegmentAnswer(a[j], b[j], found.params[rows], found.values[rows], found.grads[rows])
                      if pair.coherence and rows.size else None)
-    return SegmentMinima.concat([*carried, found])
+    return SegmentMinima.concat([carried, found])
 
 
 def _collide_in_sdf_frame(pair: Pair, local: np.ndarray, faces: np.ndarray, origin: np.ndarray, t_sdf: np.ndarray,

@@ -41,9 +41,6 @@ class SegmentMinima:
     def empty(cls) -> SegmentMinima:
         return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
 
-    def take(self, rows: np.ndarray) -> SegmentMinima:
-        return SegmentMinima(self.points[rows], self.owner[rows], self.params[rows], self.values[rows], self.grads[rows])
-
     @classmethod
     def concat(cls, parts: list[SegmentMinima]) -> SegmentMinima:
         if not parts:
@@ -68,15 +65,22 @@ class SegmentAnswer:
         by (1 - t) da + t db, at most the larger of the two."""
         return max(math.dist(a, self.a), math.dist(b, self.b))
 
-    def carried(self, a: np.ndarray, b: np.ndarray, owner: int) -> SegmentMinima:
-        """The answer at the segment's new ends, each value moved to first order along its unit normal (the same
-        points along the axis; the gradients kept), as ``owner``'s rows."""
-        k = len(self.params)
-        bary = np.stack([1.0 - self.params, self.params, np.zeros(k)], axis=1)  # the segment as a flat triangle a, b, b
-        now, then = np.broadcast_to(np.stack([a, b, b]), (k, 3, 3)), np.broadcast_to(np.stack([self.a, self.b, self.b]), (k, 3, 3))
-        values = moved_along_normal(self.values, unit_rows(self.grads), now, then, bary)
-        points = a + self.params[:, None] * (b - a)
-        return SegmentMinima(points, np.full(k, owner, dtype=np.int64), self.params.copy(), values, self.grads.copy())
+
+def carried_minima(answers: list[SegmentAnswer], a: np.ndarray, b: np.ndarray, owners: np.ndarray) -> SegmentMinima:
+    """Segments' kept ``answers`` at their new ends ``a``, ``b`` (S, 3), each value moved to first order along its unit
+    normal (the same points along the axis; the gradients kept), as rows of the segments ``owners`` (S,): all at once."""
+    if not answers:
+        return SegmentMinima.empty()
+    counts = np.array([len(answer.params) for answer in answers])
+    params = np.concatenate([answer.params for answer in answers])
+    values = np.concatenate([answer.values for answer in answers])
+    grads = np.concatenate([answer.grads for answer in answers])
+    then = np.repeat(np.stack([np.stack([answer.a, answer.b, answer.b]) for answer in answers]), counts, axis=0)
+    now = np.repeat(np.stack([a, b, b], axis=1), counts, axis=0)  # each segment as a flat triangle a, b, b
+    bary = np.stack([1.0 - params, params, np.zeros(len(params))], axis=1)
+    values = moved_along_normal(values, unit_rows(grads), now, then, bary)
+    points = now[:, 0] + params[:, None] * (now[:, 1] - now[:, 0])
+    return SegmentMinima(points, np.repeat(owners, counts), params, values, grads)
 
 
 def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: torch.dtype,

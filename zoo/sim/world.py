@@ -29,7 +29,6 @@ robot's many geoms far from the object cost a few microseconds each.
 
 from __future__ import annotations
 
-import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -43,13 +42,12 @@ import zoo
 from ..collision import ContactArrays
 from ..contact_filters import GRAZING_COS, SEPARATED_COS, Closing, usable_rows
 from ..errors import InputError
-from ..geometry import cross
 from ..validation import non_negative_float
+from .broad_phase import BroadPhase
 from .contacts import add_contacts, contact_rows
 from .geoms import (
     body_geoms,
     body_pose,
-    body_velocity,
     excluded_bodies,
     geom_parameters,
     geom_segment,
@@ -63,7 +61,6 @@ from .pairs import Pair, PairSettings, SdfBody, SegmentPair, make_pair, segment_
 from .reduction import reduce_contacts
 from .surface import CONTACT_RESOLUTION, surface_mesh
 
-SPECULATIVE_FACTOR = 1.5  # a fast pair's margin covers this much more than one step's closing distance
 TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within this of its surface
 
 
@@ -203,6 +200,7 @@ class World:
         if unknown:
             raise InputError(f"surfaces names {sorted(unknown)}, which are not SDF bodies; SDF bodies: {sorted(self.bodies)}")
         self.pairs = self._pairs(include, surfaces)
+        self._broad_phase = BroadPhase(model, self.pairs, self.margin)
         self._contact_arrays, self._contacts = ContactArrays.empty(), None  # the last step's; as zoo.Contacts when asked
         self.contact_geoms = np.zeros((0, 2), dtype=np.int32)
         self.stats = StepStats(margin=self.margin)
@@ -398,36 +396,23 @@ class World:
         rows, collected, geoms = [], [], []
         stats = StepStats(margin=self.margin)
         deepest = 0.0
-        velocities: dict[int, np.ndarray] = {}
-        poses: dict[int, np.ndarray] = {}
-        near = []  # (pair, its margin this step, its surface's pose): the pairs the bounding balls cannot rule out
-        for pair in self.pairs:
-            for body in (pair.sdf_body.body, pair.body):
-                if body not in velocities:
-                    velocities[body] = body_velocity(self.model, data, body)
-                    poses[body] = body_pose(data, body)
-            margin = max(self.margin, pair.params.margin)
-            closing = self._closing_distance(pair, data, velocities)
-            if closing > margin:  # would cross the margin in one step: see it coming
-                margin = SPECULATIVE_FACTOR * closing
-            t_other = pair.surface_pose(data)
-            if pair.apart(poses[pair.sdf_body.body], t_other, margin):
-                continue
-            stats.margin = max(stats.margin, margin)
-            stats.speculative |= closing > max(self.margin, pair.params.margin)
-            near.append((pair, margin, t_other))
-        segments = segment_contacts([n for n in near if isinstance(n[0], SegmentPair)], data)
+        near = self._broad_phase.near(data)
+        if len(near.pairs):
+            stats.margin = max(stats.margin, float(near.margins.max()))
+            stats.speculative = bool(near.speculative.any())
+        sdf_poses = {body: body_pose(data, body) for body in {pair.sdf_body.body for pair in near.pairs}}
+        segments = segment_contacts([(pair, near.margins[i], near.surface_poses[i]) for i, pair in enumerate(near.pairs)
+                                     if isinstance(pair, SegmentPair)], data)
         found = []  # PairContacts of the pairs with contacts MuJoCo can use
-        for pair, margin, t_other in near:
-            closing = self._closing(pair, data, velocities) if pair.deferred else None  # a thinning's test
+        for i, pair in enumerate(near.pairs):
+            closing = near.closing(i)
             if isinstance(pair, SegmentPair):
                 contacts, mesh_normals = segments.get(id(pair), (None, None))
             else:
-                contacts, mesh_normals = pair.collide(poses[pair.sdf_body.body], t_other, margin, closing)
+                contacts, mesh_normals = pair.collide(sdf_poses[pair.sdf_body.body], near.surface_poses[i],
+                                                      float(near.margins[i]), closing if pair.deferred else None)
             if contacts is None or len(contacts) == 0:
                 continue
-            if closing is None:
-                closing = self._closing(pair, data, velocities)
             usable = self._usable(pair, contacts, mesh_normals, closing)
             stats.raw_contacts += len(usable.contacts)
             found.append(self._reduced_on_proxy(usable))
@@ -442,25 +427,6 @@ class World:
             deepest = max(deepest, -float(r.dist.min()))
         stats.max_penetration = deepest
         return rows, collected, geoms, stats
-
-    def _closing_distance(self, pair: Pair, data, velocities: dict) -> float:
-        """Upper bound (m) on how much closer the pair's surfaces can get in one step.
-
-        A contact lies within ``reach`` of the SDF body's origin, so within ``reach`` + |x_a - x_b| of the
-        other body's: each body's rotation moves it by at most its angular speed times that lever.
-        """
-        a, b = velocities[pair.sdf_body.body], velocities[pair.body]
-        reach = pair.sdf_body.reach
-        lever = reach + _length(data.xpos[pair.sdf_body.body] - data.xpos[pair.body])
-        linear = _length(a[:3] - b[:3])
-        return (linear + reach * _length(a[3:]) + lever * _length(b[3:])) * self.model.opt.timestep
-
-    def _closing(self, pair: Pair, data, velocities: dict) -> Closing:
-        """The pair's relative motion this step, and the time a separated contact has to close
-        (:class:`zoo.contact_filters.Closing`)."""
-        a, b = velocities[pair.sdf_body.body], velocities[pair.body]
-        shift = a[:3] - b[:3] - cross(a[3:], data.xpos[pair.sdf_body.body]) + cross(b[3:], data.xpos[pair.body])
-        return Closing(shift, a[3:] - b[3:], self.model.opt.timestep * SPECULATIVE_FACTOR)
 
     @staticmethod
     def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts:
@@ -517,9 +483,6 @@ def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
     return mesh_arrays(mesh, "surface")
 
 
-def _length(v: np.ndarray) -> float:
-    """|v| of a 3-vector (``np.linalg.norm``'s checks cost more than its arithmetic here)."""
-    return math.sqrt(float(v @ v))
 
 
 __all__ = ["attach", "World", "PairContacts", "StepStats"]
