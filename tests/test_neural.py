@@ -17,7 +17,7 @@ from zoo.errors import ChecksumError, InputError, ModelNotFoundError
 from zoo.meshes import Similarity
 from zoo.model import Model, fit_code_cloud
 from zoo.neural import NeuralSDF, NeuralSDFConfig, NeuralShape, code_weights, interpolate_codes
-from zoo.neural_numpy import SMALL_BATCH
+from zoo.neural_numpy import COMPILED_POINTS, SMALL_BATCH
 
 SMALL = NeuralSDFConfig(n_codes=16, code_dim=8, hidden=(16, 16))
 
@@ -124,7 +124,7 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
     p[:3] = torch.as_tensor(SIM.to_source(m.positions[0, :3].detach().double().numpy()))  # exactly on codes
     p = p.to(dtype)
     assert shape._numpy_network(dtype) is not None  # the numpy path is the one taken
-    for n in (1, 7, SMALL_BATCH):
+    for n in (1, 2, COMPILED_POINTS, 7, SMALL_BATCH):  # compiled, then numpy
         d, g = shape.value_and_grad(p[:n])
         x = p[:n].clone().requires_grad_(True)
         with torch.enable_grad():
@@ -140,6 +140,32 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
         assert few[0].dtype == few[1].dtype == p.numpy().dtype
         assert np.array_equal(few[0], d.numpy()) and np.array_equal(few[1], g.numpy())
     assert shape.value_and_grad_few(np.zeros((SMALL_BATCH + 1, 3)), dtype) is None  # too many: the caller's torch path
+
+
+@pytest.mark.parametrize("smooth_beta,fourier_levels", [(0.0, 0), (100.0, 0), (100.0, 5)], ids=["leaky", "smooth", "fourier"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_network_for_one_to_three_points_is_the_numpy_network(smooth_beta, fourier_levels, dtype):
+    """zoo.neural_kernel's compiled call against NumpyNetwork's numpy operations at the same 1 to COMPILED_POINTS
+    points (on code positions, near them, far out, and where the activations saturate): the same values and gradients up
+    to the dtype's rounding of sums taken in another order."""
+    config = dataclasses.replace(SMALL, hidden=(64, 64, 64), smooth_beta=smooth_beta, fourier_levels=fourier_levels)
+    m = NeuralSDF(config, 1, torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        m.codes.normal_(0.0, 0.3)
+    shape = NeuralShape("a", m.decoder, config, m.codes[0], m.positions[0], SIM)
+    net = shape._numpy_network(torch.float32 if dtype == np.float32 else torch.float64)
+    rng = np.random.default_rng(6)
+    points = np.concatenate([m.positions[0, :2].detach().numpy() + [[0, 0, 0], [1e-5, 0, 0]],
+                             rng.uniform(-0.6, 0.6, (30, 3)), rng.uniform(-3, 3, (4, 3))]).astype(dtype)
+    tol = 2e-5 if dtype == np.float32 else 1e-9  # float64: a point 1e-5 from a code sums terms of 1e25
+    for start in range(len(points)):
+        x = points[start:start + 1 + start % COMPILED_POINTS]
+        values, grads = net.value_and_grad(x)
+        ref_values, ref_grads = net._numpy_value_and_grad(x)
+        assert values.dtype == grads.dtype == dtype and values.shape == (len(x),) and grads.shape == (len(x), 3)
+        scale = 1.0 + np.abs(ref_values).max()
+        np.testing.assert_allclose(values, ref_values, rtol=0, atol=tol * scale)
+        np.testing.assert_allclose(grads, ref_grads, rtol=0, atol=tol * (1.0 + np.abs(ref_grads).max()))
 
 
 def test_dtypes_are_kept_and_bad_input_rejected():

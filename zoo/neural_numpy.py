@@ -6,7 +6,9 @@ most of the call. :class:`NumpyNetwork` makes the same operations as
 :meth:`zoo.neural.NeuralShape._value_and_grad_by_hand` (the decoder's forward pass keeping each layer's
 pre-activation, then the chain rule by hand, layer by layer, and through the code cloud's interpolation) in numpy, whose
 cost per operation is a third of torch's. :meth:`zoo.neural.NeuralShape.value_and_grad` takes this path for at most
-``SMALL_BATCH`` points on the CPU without autograd; docs/proxy.md measures both paths.
+``SMALL_BATCH`` points on the CPU without autograd; docs/proxy.md measures both paths. At one to
+``COMPILED_POINTS`` points even numpy's per-call cost is most of the call, and the same operations run as one compiled
+call (:mod:`zoo.neural_kernel`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import numpy as np
 
 SOFTPLUS_FLOOR = 40.0  # beta x below -this: the smooth activation's softplus is taken there (zoo.neural.activation)
 SMALL_BATCH = 512  # points: at most this many, on the CPU and without autograd, are asked in numpy
+COMPILED_POINTS = 3  # points: at most this many are asked in one compiled call (numpy's per-call cost dominates there)
 
 
 class NumpyNetwork:
@@ -41,9 +44,28 @@ class NumpyNetwork:
         self.slope, self.beta, self.levels = float(negative_slope), float(smooth_beta), int(fourier_levels)
         self.width = self.weights[0].shape[1]
         self.frequencies = (np.pi * 2.0 ** np.arange(self.levels)).astype(dtype)
+        self._compiled = None
 
     def value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distances (P,) and gradients (P, 3) at normalised-frame points ``x`` (P, 3) of this network's dtype."""
+        """Distances (P,) and gradients (P, 3) at normalised-frame points ``x`` (P, 3) of this network's dtype: at
+        most ``COMPILED_POINTS`` points in one compiled call (:mod:`zoo.neural_kernel`), more in numpy."""
+        if len(x) <= COMPILED_POINTS:
+            from .neural_kernel import value_and_grad
+
+            return value_and_grad(x, self._arrays())
+        return self._numpy_value_and_grad(x)
+
+    def _arrays(self):
+        """This network as :class:`zoo.neural_kernel.NetworkArrays` (made at the first compiled call)."""
+        if self._compiled is None:
+            from .neural_kernel import NetworkArrays
+
+            self._compiled = NetworkArrays(tuple(self.weights), tuple(self.weights_t), self.out_weight, self.out_bias,
+                                           self.cloud_b_t, self.codes_1, self.positions, self.codes_t, self.frequencies,
+                                           self.eps, self.slope, self.beta, SOFTPLUS_FLOOR)
+        return self._compiled
+
+    def _numpy_value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         z, r, total = self._features(x)
         value, grad_z, grad_x = self._decoder(z, x)
         grad_x += self._features_backward(x, z, grad_z, r, total)

@@ -1,0 +1,219 @@
+"""A NeuralSDF shape's value and gradient at one to a few points as one compiled function: what a simulation step asks
+most often (the answers and the polishing step of a contact or two).
+
+:class:`zoo.neural_numpy.NumpyNetwork` makes some 60 numpy calls for a query whatever its size; at one to a few
+points their per-call cost is most of its time. Here the same operations (the code cloud's features, the decoder's
+layers keeping each activation's slope, the chain rule back through both) are one compiled loop over the points (numba,
+``cache=True``), each weight row read once for all points. Its arithmetic is not numpy's BLAS: from a few points on
+the numpy form is faster, and ``NumpyNetwork`` hands this only ``COMPILED_POINTS`` points at most. Answers agree with
+the numpy form's up to rounding (tests/test_fast_paths.py).
+
+numba is imported here only: ``import zoo`` does not load it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+try:
+    from numba import njit
+except ImportError as error:  # pragma: no cover - numba is a dependency of sdfzoo
+    raise ImportError("the compiled network needs numba: pip install numba") from error
+
+
+class NetworkArrays(NamedTuple):
+    """One shape's network as :class:`zoo.neural_numpy.NumpyNetwork` holds it, in one dtype: ``weights`` and
+    ``weights_t`` (tuples of each hidden layer's (rows, width) matrix and its transpose, bias folded in as the last
+    row), ``out_weight`` (width, 1), ``out_bias`` (1,), ``cloud_b_t`` (5, K), ``codes_1`` (K, C + 1), ``positions``
+    (K, 3), ``codes_t`` (C, K), ``frequencies`` (L,) the Fourier features' (none: L = 0), and the scalars ``eps``,
+    ``slope`` (the LeakyReLU's), ``beta`` (the smooth activation's; 0: none) and ``floor`` (its softplus input's)."""
+
+    weights: tuple
+    weights_t: tuple
+    out_weight: np.ndarray
+    out_bias: np.ndarray
+    cloud_b_t: np.ndarray
+    codes_1: np.ndarray
+    positions: np.ndarray
+    codes_t: np.ndarray
+    frequencies: np.ndarray
+    eps: float
+    slope: float
+    beta: float
+    floor: float
+
+
+# no nnan/ninf: the code cloud's weights are held finite by hand below, and an overflow must not be assumed away
+FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
+def value_and_grad(x, net):
+    """Distances (P,) and gradients (P, 3) at normalised-frame points ``x`` (P, 3) of ``net``'s dtype (``net`` a
+    :class:`NetworkArrays`; :meth:`zoo.neural_numpy.NumpyNetwork.value_and_grad`'s answers)."""
+    r, sums, inputs = _features(x, net)
+    values, slopes = _decoder(inputs, net)
+    grad_in = _chain_rule(slopes, net, inputs.shape[1])
+    return values, _grad_x(x, inputs, grad_in, r, sums, net)
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _features(x, net):
+    """The code cloud's inverse distances r (P, K), their weighted sums (P, C + 1) (the codes', then the weights'),
+    and the decoder's inputs (P, C + 3 + 6 L): [z; x; Fourier features of x]."""
+    dt = x.dtype.type
+    n, k_codes, c_dim, levels = x.shape[0], net.cloud_b_t.shape[1], net.codes_t.shape[0], net.frequencies.shape[0]
+    cloud, eps = net.cloud_b_t, dt(net.eps)
+    r = np.empty((n, k_codes), x.dtype)
+    for p in range(n):
+        x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
+        sq = x0 * x0 + x1 * x1 + x2 * x2
+        for k in range(k_codes):  # |x - code|^2 as [x; |x|^2; 1] . cloud_b
+            d2 = x0 * cloud[0, k] + x1 * cloud[1, k] + x2 * cloud[2, k] + sq * cloud[3, k] + cloud[4, k]
+            r[p, k] = dt(1.0) / np.sqrt(max(d2, eps))
+    sums = np.zeros((n, c_dim + 1), x.dtype)
+    for k in range(k_codes):
+        row = net.codes_1[k]
+        for p in range(n):
+            weight = r[p, k] * r[p, k] * r[p, k]
+            for c in range(c_dim + 1):
+                sums[p, c] += weight * row[c]
+    inputs = np.empty((n, c_dim + 3 + 6 * levels), x.dtype)
+    for p in range(n):
+        for c in range(c_dim):
+            inputs[p, c] = sums[p, c] / sums[p, c_dim]
+        for axis in range(3):
+            inputs[p, c_dim + axis] = x[p, axis]
+            first = c_dim + 3 + 2 * levels * axis  # sin at each level, then cos
+            for level in range(levels):
+                angle = x[p, axis] * net.frequencies[level]
+                inputs[p, first + level] = np.sin(angle)
+                inputs[p, first + levels + level] = np.cos(angle)
+    return r, sums, inputs
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _decoder(inputs, net):
+    """The decoder's values (P,) and each hidden layer's activation slope at its pre-activation (layers, P, width)."""
+    dt = inputs.dtype.type
+    n, n_in, width, n_layers = inputs.shape[0], inputs.shape[1], net.weights[0].shape[1], len(net.weights)
+    slope, beta, floor, one = dt(net.slope), dt(net.beta), dt(net.floor), dt(1.0)
+    h = np.empty((n, width), inputs.dtype)
+    pre = np.empty((n, width), inputs.dtype)
+    slopes = np.empty((n_layers, n, width), inputs.dtype)
+    for layer in range(n_layers):
+        weight = net.weights[layer]
+        first = 0 if layer == 0 else width  # layer 0's rows are [input; 1], the others' [h; input; 1]
+        for p in range(n):
+            pre[p] = weight[first + n_in]
+        if layer:
+            _add_product(h, weight, 0, width, pre)
+        _add_product(inputs, weight, first, n_in, pre)
+        for p in range(n):
+            for j in range(width):
+                h[p, j], slopes[layer, p, j] = _activation_and_slope(pre[p, j], slope, beta, floor, one)
+    values = np.empty(n, inputs.dtype)
+    for p in range(n):
+        value = net.out_bias[0]
+        for j in range(width):
+            value += h[p, j] * net.out_weight[j, 0]
+        values[p] = value
+    return values, slopes
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _add_product(inputs, weight, first_row, n_rows, out):
+    """out (P, W) += inputs (P, n_rows) @ weight[first_row:first_row + n_rows]: each weight row read once for every
+    point."""
+    n, width = out.shape
+    for i in range(n_rows):
+        row = weight[first_row + i]
+        for p in range(n):
+            v = inputs[p, i]
+            for j in range(width):
+                out[p, j] += v * row[j]
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _activation_and_slope(v, slope, beta, floor, one):
+    """``zoo.neural.activation`` and its derivative at ``v``: the LeakyReLU (``beta`` 0), or slope v + (1 - slope)
+    softplus_beta(v), softplus's input held above ``-floor`` and v itself above torch's threshold of 20. Every
+    argument of v's dtype (``one`` its 1: a Python number would widen float32 to float64)."""
+    zero = one - one
+    if beta == zero:
+        return (v, one) if v > zero else (slope * v, slope)
+    bx = beta * v
+    e = np.exp(-min(abs(bx), floor))  # no overflow, no denormals
+    soft = v if bx > 20 * one else (np.log1p(e) + max(bx, zero)) / beta
+    sigmoid = one / (one + e) if bx >= zero else e / (one + e)
+    return (one - slope) * soft + slope * v, slope + (one - slope) * sigmoid
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _chain_rule(slopes, net, n_in):
+    """d value / d input (P, n_in), back through the layers from their ``slopes`` (layers, P, width)."""
+    n_layers, n, width = slopes.shape
+    grad_h = np.empty((n, width), slopes.dtype)
+    for p in range(n):
+        grad_h[p] = net.out_weight[:, 0]
+    grad_in = np.zeros((n, n_in), slopes.dtype)
+    g = np.empty((n, width), slopes.dtype)
+    for layer in range(n_layers - 1, -1, -1):
+        weight_t = net.weights_t[layer]
+        for p in range(n):
+            for j in range(width):
+                g[p, j] = grad_h[p, j] * slopes[layer, p, j]
+        first = 0 if layer == 0 else width
+        if layer:
+            grad_h[:] = 0
+        for j in range(width):
+            row = weight_t[j]
+            for p in range(n):
+                gj = g[p, j]
+                if layer:
+                    for i in range(width):
+                        grad_h[p, i] += gj * row[i]
+                for i in range(n_in):
+                    grad_in[p, i] += gj * row[first + i]
+    return grad_in
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _grad_x(x, inputs, grad_in, r, sums, net):
+    """The gradient (P, 3) at ``x``: the decoder's through x and its Fourier features, and through the features z
+    (``zoo.neural.interpolate_codes_direct_backward``; a code's own weight, r at its cap, contributes nothing)."""
+    dt = x.dtype.type
+    n, k_codes, c_dim, levels = x.shape[0], r.shape[1], net.codes_t.shape[0], net.frequencies.shape[0]
+    cap = (dt(1.0) - dt(1e-6)) / np.sqrt(dt(net.eps))
+    a = np.zeros((n, k_codes), x.dtype)  # grad_z . codes
+    for c in range(c_dim):
+        row = net.codes_t[c]
+        for p in range(n):
+            gc = grad_in[p, c]
+            for k in range(k_codes):
+                a[p, k] += gc * row[k]
+    grads = np.empty((n, 3), x.dtype)
+    for p in range(n):
+        grad_z_z = dt(0.0)
+        for c in range(c_dim):
+            grad_z_z += grad_in[p, c] * inputs[p, c]
+        scale = dt(-3.0) / sums[p, c_dim]
+        total, moment = dt(0.0), np.zeros(3, x.dtype)
+        for k in range(k_codes):
+            rk = r[p, k]
+            if rk < cap:
+                r2 = rk * rk
+                ak = (a[p, k] - grad_z_z) * (r2 * r2 * rk * scale)
+                total += ak
+                for axis in range(3):
+                    moment[axis] += ak * net.positions[k, axis]
+        for axis in range(3):
+            g = grad_in[p, c_dim + axis]
+            first = c_dim + 3 + 2 * levels * axis
+            for level in range(levels):
+                angle = x[p, axis] * net.frequencies[level]
+                g += (grad_in[p, first + level] * np.cos(angle) - grad_in[p, first + levels + level] * np.sin(angle)) * net.frequencies[level]
+            grads[p, axis] = g + x[p, axis] * total - moment[axis]
+    return grads
