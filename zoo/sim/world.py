@@ -23,8 +23,8 @@ surface mesh (``surfaces`` names one, else it is extracted once from its SDF by 
 bodies, the one named first in ``bodies`` uses its SDF. Each kind of pair is its own type (:mod:`zoo.sim.pairs`). Triangles larger than a quarter of the SDF are split
 once, at attach (``refine``). Fast impacts: a pair whose bodies could close more than the margin within a
 step is collided with a margin that covers it (speculative contacts). Before any query, a pair whose
-bounding balls (a ball and a half-space for a plane) are farther apart than the margin is passed over: a
-robot's many geoms far from the object cost a few microseconds each.
+bounding balls (a ball and a half-space for a plane) are farther apart than the margin is passed over, every pair
+in one compiled call (:mod:`zoo.sim.broad_phase`): a robot's many geoms far from the object cost next to nothing.
 """
 
 from __future__ import annotations
