@@ -127,9 +127,15 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
+def row_norms(v: np.ndarray) -> np.ndarray:
+    """(..., n) -> (...): each row's Euclidean length (numpy; ``np.linalg.norm``'s checks cost more than a few rows'
+    arithmetic)."""
+    return np.sqrt((v * v).sum(axis=-1))
+
+
 def unit_rows(v: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3): each vector over its length (numpy), zeros left zero."""
-    length = np.sqrt((v * v).sum(axis=-1, keepdims=True))
+    length = row_norms(v)[..., None]
     return v / np.where(length > 0, length, 1.0)
 
 

@@ -71,7 +71,7 @@ from .bounds import triangle_reach
 from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved_along_normal
 from .collision import ContactArrays, Contacts, mesh_tensors, solve_candidates
 from .errors import InputError
-from .geometry import face_normals, invert_pose, unit_rows
+from .geometry import face_normals, invert_pose, row_norms, unit_rows
 from .methods import iterations
 from .proxy import IN_BAND
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
@@ -277,11 +277,11 @@ class ProxyCollider:
         D - a D - c <= R + search, so D <= D0 = (R + search + c) / (1 - a), and it moved at most a D0 + c (infinite for
         a >= 1). Points farther cannot come near the SDF (no contact lies outside its bounds grown by the margin)."""
         turn = now[:3, :3] - then[:3, :3]
-        a = float(np.linalg.norm(turn))
+        a = math.sqrt(float((turn * turn).sum()))
         if a >= 1:
             return math.inf
         at_centre = then[:3, :3].T @ (self._sdf_centre - then[:3, 3])  # m: the mesh point at s then (mesh frame)
-        c = float(np.linalg.norm(turn @ at_centre + now[:3, 3] - then[:3, 3]))
+        c = float(row_norms(turn @ at_centre + now[:3, 3] - then[:3, 3]))
         return a * (self._sdf_radius + search + c) / (1 - a) + c
 
     # -- the search (zoo.proxy_search, zoo.proxy_kernel) -------------------------------------------------------------
@@ -551,7 +551,7 @@ class _SDFAnswers:
         ``reuse_distance`` since."""
         if not len(faces):
             return np.zeros(0, dtype=bool)
-        moved = np.linalg.norm(tri - self.at[faces], axis=-1).max(axis=-1)
+        moved = row_norms(tri - self.at[faces]).max(axis=-1)
         return np.isfinite(self.value[faces]) & (moved <= reuse_distance)
 
     def carried(self, faces: np.ndarray, tri: np.ndarray):
@@ -587,8 +587,8 @@ class _FaceBounds:
         shift."""
         if self.relative is not None:
             turn = relative[:3, :3] - self.relative[:3, :3]
-            self.cluster_motion += (np.linalg.norm(centres @ turn.T + (relative[:3, 3] - self.relative[:3, 3]), axis=1)
-                                    + np.linalg.norm(turn) * radii)
+            self.cluster_motion += (row_norms(centres @ turn.T + (relative[:3, 3] - self.relative[:3, 3]))
+                                    + math.sqrt(float((turn * turn).sum())) * radii)
         self.relative = relative
 
 
