@@ -75,7 +75,7 @@ from .geometry import face_normals, invert_pose, row_norms, unit_rows
 from .methods import iterations
 from .proxy import IN_BAND
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
-from .sdf import value_and_grad_numpy
+from .sdf import query_dtype, value_and_grad_numpy
 from .simplex import descent_segment, frank_wolfe_gap, on_simplex
 from .validation import as_pose_array, non_negative_float
 
@@ -157,7 +157,7 @@ class ProxyCollider:
             raise InputError(f"thin= takes a zoo.proxy_collider.Thinning or None, got {type(thin).__name__}")
         self.thin = thin
         self.reported_method = f"proxy+{method}"
-        self._dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32  # the SDF's queries
+        self._dtype = query_dtype(sdf)  # the SDF's queries
         vertices, faces = mesh_tensors(mesh)
         self.vertices, self.faces = vertices, faces  # torch, for the fallback and the caller
         v, f = vertices.detach().cpu().numpy().astype(np.float64), faces.cpu().numpy()
@@ -183,6 +183,7 @@ class ProxyCollider:
             self._compiled_search(self._search_call(identity[:3, :3], identity[:3, 3], self.margin, self.margin,
                                                     n_clusters=0), CoherenceStats())
             self._compiled_polish(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), CoherenceStats())
+            value_and_grad_numpy(self.sdf, np.zeros((1, 3)), self._dtype)  # and a NeuralSDF's few-point network
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""

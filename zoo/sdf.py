@@ -64,6 +64,11 @@ def value_and_grad_numpy(sdf, points: np.ndarray, dtype: torch.dtype = torch.flo
     return torch.as_tensor(f).reshape(-1).double().cpu().numpy(), torch.as_tensor(g).reshape(-1, 3).double().cpu().numpy()
 
 
+def query_dtype(sdf) -> torch.dtype:
+    """The dtype a simulation asks ``sdf`` in: float64 for an SDF in float64, else float32."""
+    return torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32
+
+
 class SDFBase:
     """Validates input, converts dtypes, and derives ``value_and_grad`` by autograd.
 

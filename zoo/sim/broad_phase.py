@@ -102,6 +102,9 @@ class BroadPhase:
             radius=np.array([0.0 if isinstance(p, PlanePair) else p.bounding_radius for p in pairs], dtype=np.float64),
             surface=np.array([p.geom if g else p.body for p, g in zip(pairs, by_geom)], dtype=np.int64),
             by_geom=np.array(by_geom, dtype=np.bool_))
+        import mujoco
+
+        self.near(mujoco.MjData(model))  # compiled (or loaded from numba's cache) now, not in the first step
 
     def near(self, data) -> NearPairs:
         """The pairs that may touch at ``data``'s kinematics (and velocities)."""

@@ -27,6 +27,7 @@ from ..collider import REUSE_FRACTION
 from ..collision import ContactArrays
 from ..contact_filters import GRAZING_COS, SEPARATED_COS
 from ..geometry import face_normals, invert_pose, unit_rows
+from ..sdf import query_dtype
 from .contacts import MERGE_CELL, REFINE_CELLS, refine_near, refine_to_size, refined_pieces
 from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import ContactParameters, body_pose, cube_corners, geom_pose
@@ -422,7 +423,7 @@ def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> Segme
                              np.array([ends[i][1] for i in kept]).reshape(-1, 3), np.asarray(kept, dtype=np.int64))
     if not asked:
         return carried
-    dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32
+    dtype = query_dtype(sdf)
     lower_bound = None if proxy is None else (lambda p: proxy.read_numpy(p)[0] - proxy.error_bound)
     a, b = np.array([ends[i][0] for i in asked]), np.array([ends[i][1] for i in asked])
     found = segment_minima(sdf, a, b, reach[asked], dtype, lower_bound)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, require
+from ..sdf import query_dtype
 
 VISUAL_RESOLUTION = 48  # grid cells along the longest side: what a rendered body needs
 CONTACT_RESOLUTION = 128  # for a surface another SDF collides with
@@ -56,7 +57,7 @@ def _values(sdf, lo: np.ndarray, cell: float, counts: np.ndarray) -> np.ndarray:
 def _values_at(sdf, points: np.ndarray) -> np.ndarray:
     """``sdf`` at ``points`` (N, 3), in chunks, as float64 (N,)."""
     values = np.empty(len(points))
-    dtype = torch.float64 if getattr(sdf, "dtype", None) == torch.float64 else torch.float32
+    dtype = query_dtype(sdf)
     with torch.no_grad():
         for start in range(0, len(points), CHUNK):
             chunk = torch.as_tensor(points[start:start + CHUNK], dtype=dtype)

@@ -42,6 +42,7 @@ import zoo
 from ..collision import ContactArrays
 from ..contact_filters import GRAZING_COS, SEPARATED_COS, Closing, usable_rows
 from ..errors import InputError
+from ..sdf import query_dtype, value_and_grad_numpy
 from ..validation import non_negative_float
 from .broad_phase import BroadPhase
 from .contacts import add_contacts, contact_rows
@@ -201,6 +202,8 @@ class World:
             raise InputError(f"surfaces names {sorted(unknown)}, which are not SDF bodies; SDF bodies: {sorted(self.bodies)}")
         self.pairs = self._pairs(include, surfaces)
         self._broad_phase = BroadPhase(model, self.pairs, self.margin)
+        for sdf_body in self.bodies.values():  # a NeuralSDF's few-point network made (and compiled) now, not in a step
+            value_and_grad_numpy(sdf_body.sdf, np.zeros((1, 3)), query_dtype(sdf_body.sdf))
         self._contact_arrays, self._contacts = ContactArrays.empty(), None  # the last step's; as zoo.Contacts when asked
         self.contact_geoms = np.zeros((0, 2), dtype=np.int32)
         self.stats = StepStats(margin=self.margin)
