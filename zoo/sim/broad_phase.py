@@ -1,11 +1,11 @@
 """Which of a World's pairs may touch this step, all pairs at once: each pair's margin (grown to see a fast pair
-coming), the balls about its two sides, and the pairs' relative motions, in a few array operations over every pair
-rather than a dozen small ones per pair (a robot brings dozens of pairs, most of them far apart).
+coming), the balls about its two sides, and the pairs' relative motions, in one compiled loop over the pairs
+rather than a dozen numpy calls per pair (a robot brings dozens of pairs, most of them far apart).
 
 A pair's margin is the larger of the world's and its geoms' margin; where the bodies can close more than that in
-one step (:func:`closing_distances`), ``SPECULATIVE_FACTOR`` times the closing distance. A pair is near unless the
-ball about its SDF's box and the ball about its surface lie more than that margin apart (a plane: unless the SDF's
-ball lies that far above it).
+one step, ``SPECULATIVE_FACTOR`` times the closing distance. A pair is near unless the ball about its SDF's box and
+the ball about its surface lie more than that margin apart (a plane: unless the SDF's ball lies that far above it).
+tests/test_broad_phase.py holds it against the per-pair test it replaced.
 """
 
 from __future__ import annotations
@@ -140,9 +140,13 @@ def _near(pairs, velocity, xpos, xmat, geom_xpos, geom_xmat, dt, factor, margins
         origin = geom_xpos[s] if pairs.by_geom[i] else xpos[s]
         poses[i, :3, :3], poses[i, :3, 3], poses[i, 3, 3] = rotation, origin, 1.0
         sdf_rotation = xmat[a].reshape(3, 3)
-        gap = sdf_rotation @ pairs.box_centre[i] + xa - rotation @ pairs.centre[i] - origin
+        gap = np.empty(3)  # the SDF's ball's centre less the surface's, world frame
+        for k in range(3):
+            gap[k] = (_row_dot(sdf_rotation, k, pairs.box_centre[i]) + xa[k]
+                      - _row_dot(rotation, k, pairs.centre[i]) - origin[k])
         if pairs.plane[i]:  # the SDF's ball above the plane (z = 0 of its frame, facing +z)
-            apart = rotation[0, 2] * gap[0] + rotation[1, 2] * gap[1] + rotation[2, 2] * gap[2] - pairs.box_radius[i] > margins[i]
+            height = rotation[0, 2] * gap[0] + rotation[1, 2] * gap[1] + rotation[2, 2] * gap[2]
+            apart = height - pairs.box_radius[i] > margins[i]
         else:
             apart = _norm3(gap[0], gap[1], gap[2]) - pairs.box_radius[i] - pairs.radius[i] > margins[i]
         near[i] = not apart
@@ -156,3 +160,9 @@ def _near(pairs, velocity, xpos, xmat, geom_xpos, geom_xmat, dt, factor, margins
 @njit(cache=True, nogil=True, inline="always")
 def _norm3(x, y, z):
     return math.sqrt(x * x + y * y + z * z)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_dot(m, k, v):
+    """(m v)[k] for a 3x3 ``m`` (numba's matrix product needs SciPy's BLAS, which a simulation does not install)."""
+    return m[k, 0] * v[0] + m[k, 1] * v[1] + m[k, 2] * v[2]
