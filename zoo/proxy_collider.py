@@ -278,7 +278,7 @@ class ProxyCollider:
         D - a D - c <= R + search, so D <= D0 = (R + search + c) / (1 - a), and it moved at most a D0 + c (infinite for
         a >= 1). Points farther cannot come near the SDF (no contact lies outside its bounds grown by the margin)."""
         turn = now[:3, :3] - then[:3, :3]
-        a = math.sqrt(float((turn * turn).sum()))
+        a = float(row_norms(turn.reshape(-1)))  # |dR|_F
         if a >= 1:
             return math.inf
         at_centre = then[:3, :3].T @ (self._sdf_centre - then[:3, 3])  # m: the mesh point at s then (mesh frame)
@@ -589,7 +589,7 @@ class _FaceBounds:
         if self.relative is not None:
             turn = relative[:3, :3] - self.relative[:3, :3]
             self.cluster_motion += (row_norms(centres @ turn.T + (relative[:3, 3] - self.relative[:3, 3]))
-                                    + math.sqrt(float((turn * turn).sum())) * radii)
+                                    + float(row_norms(turn.reshape(-1))) * radii)
         self.relative = relative
 
 
@@ -656,5 +656,3 @@ def _row_indices(rows) -> np.ndarray:
     if isinstance(rows, torch.Tensor):
         rows = rows.detach().cpu().numpy()
     return np.asarray(rows, dtype=np.int64).reshape(-1)
-
-

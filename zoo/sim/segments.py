@@ -6,6 +6,10 @@ samples, then two Hermite steps. A segment's few dozen points per query cost a N
 more than its arithmetic, so the search spends calls, not points: the gradient along the axis picks the side of the
 lowest sample the minimum lies on, and each step reads two guesses from the bracket's two ends (their values and
 slopes): the cubic's minimum (exact where f is smooth) and where their tangents meet (exact at a kink).
+
+Between searches, a segment that moved less than a reuse distance since the SDF answered it keeps that answer
+(:class:`SegmentAnswer`), its values moved to first order along their normals (:func:`carried_minima`), as a mesh
+pair's faces keep theirs (``zoo.sim.pairs`` decides which).
 """
 
 from __future__ import annotations
