@@ -44,7 +44,7 @@ class NumpyNetwork:
         self.slope, self.beta, self.levels = float(negative_slope), float(smooth_beta), int(fourier_levels)
         self.width = self.weights[0].shape[1]
         self.frequencies = (np.pi * 2.0 ** np.arange(self.levels)).astype(dtype)
-        self._compiled = None
+        self._kernel_arrays = None
 
     def value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (P,) and gradients (P, 3) at normalised-frame points ``x`` (P, 3) of this network's dtype: at
@@ -57,13 +57,13 @@ class NumpyNetwork:
 
     def _arrays(self):
         """This network as :class:`zoo.neural_kernel.NetworkArrays` (made at the first compiled call)."""
-        if self._compiled is None:
+        if self._kernel_arrays is None:
             from .neural_kernel import NetworkArrays
 
-            self._compiled = NetworkArrays(tuple(self.weights), tuple(self.weights_t), self.out_weight, self.out_bias,
+            self._kernel_arrays = NetworkArrays(tuple(self.weights), tuple(self.weights_t), self.out_weight, self.out_bias,
                                            self.cloud_b_t, self.codes_1, self.positions, self.codes_t, self.frequencies,
                                            self.eps, self.slope, self.beta, SOFTPLUS_FLOOR)
-        return self._compiled
+        return self._kernel_arrays
 
     def _numpy_value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         z, r, total = self._features(x)

@@ -15,7 +15,7 @@ pair's faces keep theirs (``zoo.sim.pairs`` decides which).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -49,7 +49,7 @@ class SegmentMinima:
     def concat(cls, parts: list[SegmentMinima]) -> SegmentMinima:
         if not parts:
             return cls.empty()
-        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("points", "owner", "params", "values", "grads")))
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
 
 
 @dataclass
