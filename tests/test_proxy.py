@@ -545,6 +545,39 @@ def test_a_deep_penetration_out_of_band_falls_back_to_the_sdf():
     check_exact(sphere, b, sdf_pose)
 
 
+def brute_force_minima(sdf, triangles: np.ndarray, per_side: int = 300) -> np.ndarray:
+    """The least of ``sdf`` (float64) over a grid of barycentric points ``per_side`` to a side on each triangle
+    (T, 3, 3): (T,), the slow reference."""
+    i, j = np.meshgrid(np.arange(per_side + 1), np.arange(per_side + 1), indexing="ij")
+    keep = i + j <= per_side
+    bary = np.stack([i[keep], j[keep], per_side - i[keep] - j[keep]], -1) / per_side  # (G, 3)
+    points = torch.from_numpy(np.einsum("gv,tvc->tgc", bary, triangles).reshape(-1, 3))
+    with torch.no_grad():
+        return sdf(points).reshape(len(triangles), -1).amin(-1).numpy()
+
+
+def test_faces_deeper_than_the_band_take_the_sdfs_minimum_over_them():
+    """Large faces cutting a torus's tube up to 20 mm deep, beyond a 2 mm band (where the proxy holds only a bound):
+    the SDF's own descent on them finds each face's minimum, the brute-force one, though the torus is not convex on
+    a face that crosses its tube twice."""
+    torus = zoo.Torus(0.05, 0.02)
+    proxy = bake_proxy(torus, margin=1e-3, spacing=1e-3, band=2e-3)
+    vertices, faces = plane_mesh(size=0.16, max_edge=0.04)
+    ours = zoo.CoherentCollider(torus, (vertices, faces), margin=1e-3, method="fw", proxy=proxy)
+    sdf_pose = pose(rotation((1, 0.3, 0), 0.25), (0.003, -0.002, -0.005))
+    b = ours(sdf_pose, None)
+    assert ours.last_stats.fallback >= 5 and float(b.depths.min()) < -0.01
+    check_exact(torus, b, sdf_pose)
+    local = (vertices.astype(np.float64) - sdf_pose[:3, 3]) @ sdf_pose[:3, :3]  # the torus's frame
+    truth = brute_force_minima(torus, local[faces[b.triangles.numpy()]])
+    deep = truth < -proxy.band
+    assert deep.sum() >= 5
+    error = np.abs(b.depths.double().numpy()[deep] - truth[deep])
+    # on the tube's core circle the torus has a kink, along which a descent zigzags: there within a tenth of the
+    # margin (Frank-Wolfe from scratch, zoo.collide's "fw", misses these faces' minima by up to 4.8e-4)
+    assert np.median(error) < 1e-6 and error.max() < 1e-4
+
+
 # -- in a simulation ------------------------------------------------------------------------------
 
 

@@ -59,7 +59,8 @@ class CoherenceStats:
             answered by the SDF itself (the counts above are then of the search on the proxy).
         exact_points: with a proxy, the points the SDF itself was asked at (values and gradients alike).
         exact_kept: of ``exact_faces``, those whose SDF answer was kept from an earlier step (no query).
-        fallback: of ``exact_faces``, those whose proxy answer lay out of the proxy's band, solved from scratch on the SDF.
+        fallback: of ``exact_faces``, those whose proxy answer lay out of the proxy's band, answered by the SDF's own
+            descent (``zoo.proxy_collider.ProxyCollider._out_of_band``).
     """
 
     steps: int = 0

@@ -24,9 +24,10 @@ against); neither loops over faces in Python:
    proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
    reduces them to a manifold first): its value and gradient at the proxy's minimiser; where the SDF's Frank-Wolfe
    gap there exceeds ``POLISH_GAP_FRACTION`` of the margin, one step along the SDF's steepest descent inside the
-   face, its length chosen on the proxy, and the SDF's value and gradient at its end, kept where lower; and
-   the method from scratch on the SDF where the proxy's minimiser lies out of its band (a penetration deeper than
-   the band). Colliders on one SDF and proxy answer together (:func:`exact_contacts_together`: a simulation step's
+   face, its length chosen on the proxy, and the SDF's value and gradient at its end, kept where lower; where the
+   proxy's minimiser lies out of its band (a penetration deeper than the band, or a face above it within a
+   speculative margin), where the proxy holds only a bound, the SDF's own descent from the lowest of that point and
+   the face's corners (:meth:`ProxyCollider._out_of_band`). Colliders on one SDF and proxy answer together (:func:`exact_contacts_together`: a simulation step's
    pairs on one body ask the SDF once). A face that moved less than ``reuse_distance`` since the SDF answered it keeps that answer, its
    depth moved to first order along its normal (a persistent contact). Every contact's point, depth and normal
    are the SDF's.
@@ -69,7 +70,7 @@ import torch
 
 from .bounds import triangle_reach
 from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved_along_normal
-from .collision import ContactArrays, Contacts, mesh_tensors, solve_candidates
+from .collision import ContactArrays, Contacts, mesh_tensors
 from .errors import InputError
 from .geometry import face_normals, invert_pose, row_norms, unit_rows
 from .methods import iterations
@@ -89,6 +90,8 @@ SEARCH_STEPS, WARM_SEARCH_STEPS = 3, 1
 CONVERGED_GAP = 0.02  # a face whose Frank-Wolfe gap on the proxy is below this fraction of the margin stops searching
 KERNELS = ("numba", "numpy")  # how the per-face passes run: compiled (zoo.proxy_kernel), or numpy passes
 POLISH_SAMPLES = 8  # points on the proxy along the SDF's steepest descent that choose a polishing step's length
+DEEP_STEPS = 12  # the most steps of the SDF's own descent on a face out of the proxy's band
+DEEP_GAP_FRACTION = 1e-2  # ... which stops where its Frank-Wolfe gap is within this fraction of the margin
 # The search's starts (barycentric): the vertices, the edges' midpoints and three inner points, so that a minimum in
 # any part of the face has a start near it; the last answer is added per face.
 PATTERN = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5],
@@ -178,12 +181,20 @@ class ProxyCollider:
         self._sdf_centre, self._sdf_radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2  # its bounding ball
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()
-        if kernel == "numba":  # compiled (or loaded from numba's cache) now, not in the first step
-            identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
-            self._compiled_search(self._search_call(identity[:3, :3], identity[:3, 3], self.margin, self.margin,
-                                                    n_clusters=0), CoherenceStats())
-            self._compiled_polish(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), CoherenceStats())
-            value_and_grad_numpy(self.sdf, np.zeros((1, 3)), self._dtype)  # and a NeuralSDF's few-point network
+        if kernel == "numba":
+            self._compile_kernels()
+
+    def _compile_kernels(self) -> None:
+        """The compiled passes compiled (or loaded from numba's cache) now, not in the first step that meets them: the
+        search, the thinning, the polish and a NeuralSDF's few-point network, on no face."""
+        identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
+        found = self._compiled_search(self._search_call(identity[:3, :3], identity[:3, 3], self.margin, self.margin,
+                                                        n_clusters=0), CoherenceStats())
+        thin, self.thin = self.thin, Thinning(cell=self.margin, touching_cos=0.0, separated_cos=0.0)
+        self._thinned(identity, identity[:3, :3], self.margin, found)
+        self.thin = thin
+        self._compiled_polish(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), CoherenceStats())
+        value_and_grad_numpy(self.sdf, np.zeros((1, 3)), self._dtype)
 
     def reset(self) -> None:
         """Forget the last answers (the next call searches from the pattern alone); ``stats`` are kept."""
@@ -385,31 +396,51 @@ class ProxyCollider:
         margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (len(tri),))
         f, g = self._sdf_at(np.einsum("av,avc->ac", bary, tri), stats)
         gap = frank_wolfe_gap(tri, bary, g)
-        polish = np.flatnonzero((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin))
+        out = status != IN_BAND  # the proxy holds only a bound there
+        polish = np.flatnonzero((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin) & ~out)
         if polish.size:
             b, f1, g1 = self._polish(tri[polish], bary[polish], g[polish], stats)
             lower = f1 < f[polish]
             rows = polish[lower]
             bary[rows], f[rows], g[rows] = b[lower], f1[lower], g1[lower]
-        out = np.flatnonzero(status != IN_BAND)
-        for m in np.unique(margin[out]) if out.size else ():  # deeper than the band: the method from scratch on the SDF (rare)
-            self._from_scratch(out[margin[out] == m], tri, bary, f, g, float(m), stats)
+        out = np.flatnonzero(out)
+        if out.size:  # rare: a penetration deeper than the band, or a speculative margin wider than it
+            bary[out], f[out], g[out] = self._out_of_band(tri[out], bary[out], f[out], g[out], margin[out], stats)
         return bary, f, g
 
-    def _from_scratch(self, out, tri, bary, f, g, margin: float, stats) -> None:
-        """The method from scratch on the SDF at the faces ``out`` of ``tri`` (A, 3, 3), its answers kept in ``bary``,
-        ``f`` and ``g`` (updated in place) where lower."""
-        stats.fallback += int(out.size)
-        local = torch.from_numpy(tri[out].reshape(-1, 3)).to(self._dtype)
-        unknown = torch.full(local.shape[:1], torch.nan, dtype=self._dtype)
-        with torch.no_grad():
-            b_cold, f_cold = solve_candidates(self.sdf, self.sdf, local, torch.arange(local.shape[0]).reshape(-1, 3),
-                                              unknown, margin, self.method, self.iters, self.polish)
-        lower = f_cold.double().numpy() < f[out]
-        rows = out[lower]
-        if rows.size:
-            bary[rows] = b_cold.double().numpy()[lower]
-            f[rows], g[rows] = self._sdf_at(np.einsum("av,avc->ac", bary[rows], tri[rows]), stats)
+    def _out_of_band(self, tri, bary, f, g, margin, stats):
+        """The SDF's own descent on faces (D, 3, 3) whose proxy minimiser ``bary`` (D, 3) (``f`` (D,), ``g`` (D, 3) the
+        SDF there) lies out of the proxy's band, where it holds only a bound: from the lowest of that point and
+        the face's corners, up to ``DEEP_STEPS`` steps along the SDF's steepest descent inside the face, each to the
+        lowest of ``POLISH_SAMPLES`` points along it (one query for all the faces; a step that finds none lower than
+        where it stands tries again ``POLISH_SAMPLES`` times shorter), until the Frank-Wolfe gap is within
+        ``DEEP_GAP_FRACTION`` of the ``margin`` (D,): -> bary (D, 3), values (D,), gradients (D, 3)."""
+        stats.fallback += len(tri)
+        rows = np.arange(len(tri))
+        f_corner, g_corner = self._sdf_at(tri.reshape(-1, 3), stats)
+        corner = f_corner.reshape(-1, 3).argmin(axis=1)
+        lower = f_corner.reshape(-1, 3)[rows, corner] < f
+        bary, f, g = bary.copy(), f.copy(), g.copy()
+        bary[lower] = np.eye(3)[corner[lower]]
+        f[lower], g[lower] = f_corner.reshape(-1, 3)[rows, corner][lower], g_corner.reshape(-1, 3, 3)[rows, corner][lower]
+        length = np.ones(len(tri))  # of the descent segment, as a fraction of the way to the face's boundary
+        t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
+        for _ in range(DEEP_STEPS):
+            going = np.flatnonzero(frank_wolfe_gap(tri, bary, g) > DEEP_GAP_FRACTION * margin)
+            if not going.size:
+                break
+            direction, reach = descent_segment(tri[going], bary[going], g[going])
+            along = on_simplex(bary[going, None] + (t[None, :, None] * (length[going] * reach)[:, None, None])
+                               * direction[:, None])  # (G, S, 3)
+            values, grads = self._sdf_at(np.einsum("gsv,gvc->gsc", along, tri[going]).reshape(-1, 3), stats)
+            values, grads = values.reshape(len(going), -1), grads.reshape(len(going), -1, 3)
+            best = values.argmin(axis=1)
+            at = np.arange(len(going))
+            moved = values[at, best] < f[going]
+            step = going[moved]
+            bary[step], f[step], g[step] = along[at, best][moved], values[at, best][moved], grads[at, best][moved]
+            length[going] = np.where(moved, 1.0, length[going] / POLISH_SAMPLES)
+        return bary, f, g
 
     def _polish(self, tri, bary, g, stats):
         """One step along the SDF's steepest descent inside each triangle (P, 3, 3) from ``bary`` (P, 3) (``g`` (P, 3) the

@@ -202,14 +202,22 @@ class World:
             raise InputError(f"surfaces names {sorted(unknown)}, which are not SDF bodies; SDF bodies: {sorted(self.bodies)}")
         self.pairs = self._pairs(include, surfaces)
         self._broad_phase = BroadPhase(model, self.pairs, self.margin)
-        for sdf_body in self.bodies.values():  # a NeuralSDF's few-point network made (and compiled) now, not in a step
-            value_and_grad_numpy(sdf_body.sdf, np.zeros((1, 3)), query_dtype(sdf_body.sdf))
+        self._compile_kernels()
         self._contact_arrays, self._contacts = ContactArrays.empty(), None  # the last step's; as zoo.Contacts when asked
         self.contact_geoms = np.zeros((0, 2), dtype=np.int32)
         self.stats = StepStats(margin=self.margin)
         self._hooks = 0
 
     # -- building ----------------------------------------------------------------------------------
+
+    def _compile_kernels(self) -> None:
+        """A step's compiled kernels compiled (or loaded from numba's cache) now, at attach, not in the steps that first
+        meet them: each NeuralSDF's few-point network, the contact filter and the reduction, on one placeholder row."""
+        for sdf_body in self.bodies.values():
+            value_and_grad_numpy(sdf_body.sdf, np.zeros((1, 3)), query_dtype(sdf_body.sdf))
+        row, up = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+        usable_rows(row, np.zeros(1), up, up, np.zeros(3), np.zeros(3), -1.0, GRAZING_COS, SEPARATED_COS)
+        reduce_contacts(row, np.zeros(1), up, up, merge_tol=1e-3)
 
     def _geom_id(self, name: str) -> int:
         import mujoco
