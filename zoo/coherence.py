@@ -364,7 +364,6 @@ class CoherentCollider:
             proxy = cached_proxy(self.sdf, margin=self.margin)
         check_sdf(proxy)
         return ProxyCollider(self.sdf, (self.vertices, self.faces), proxy, self.margin, self.method,
-                             iters=None if self.method == "amortized" else self.iters, polish=self.polish,
                              reuse_distance=self.reuse_distance, deferred=deferred)
 
     def collide_arrays(self, sdf_pose: np.ndarray, mesh_pose: np.ndarray, margin: float | None = None) -> ContactArrays:

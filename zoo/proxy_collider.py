@@ -73,7 +73,6 @@ from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved
 from .collision import ContactArrays, Contacts, mesh_tensors
 from .errors import InputError
 from .geometry import face_normals, invert_pose, row_norms, unit_rows
-from .methods import iterations
 from .proxy import IN_BAND
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
 from .sdf import query_dtype, value_and_grad_numpy
@@ -128,8 +127,8 @@ class ProxyCollider:
         mesh: a ``trimesh.Trimesh`` or a ``(vertices (V, 3), faces (F, 3))`` pair, fixed for the pair's life.
         proxy: the SDF's :class:`zoo.proxy.ProxySDF`.
         margin: m, contacts within it are reported.
-        method: the narrow phase that answers, on the SDF, a face whose proxy minimiser lies out of the band.
-        iters, polish: as for ``zoo.collide``, for that method.
+        method: the narrow phase the contacts name (``proxy+method``); the SDF answers every face itself, from the
+            proxy's minimiser (see the module docstring), whatever the method.
         reuse_distance: m; a face that moved less than this (relative to the SDF) since the SDF answered it keeps
             that answer, its depth moved along its normal; default ``REUSE_FRACTION`` of the margin; 0 answers anew.
         deferred: a call returns the proxy's contacts, and :meth:`exact_contacts` the SDF's for the rows kept.
@@ -142,13 +141,12 @@ class ProxyCollider:
             simulation's reduction can keep (None: every face within the margin).
     """
 
-    def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *, iters: int | None = None,
-                 polish: bool = True, reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba",
+    def __init__(self, sdf, mesh, proxy, margin: float = 1e-3, method: str = "amortized", *,
+                 reuse_distance: float | None = None, deferred: bool = False, kernel: str = "numba",
                  hold: bool = True, thin: Thinning | None = None):
         if not callable(getattr(proxy, "read_numpy", None)) or not hasattr(proxy, "error_bound"):
             raise InputError(f"proxy= takes True or a zoo.proxy.ProxySDF, got {type(proxy).__name__}")
         self.sdf, self.proxy, self.method = sdf, proxy, method
-        self.iters, self.polish = iterations(method, iters), bool(polish)
         self.margin = non_negative_float(margin, "margin")
         self.reuse_distance = (REUSE_FRACTION * self.margin if reuse_distance is None
                                else non_negative_float(reuse_distance, "reuse_distance"))
@@ -162,7 +160,7 @@ class ProxyCollider:
         self.reported_method = f"proxy+{method}"
         self._dtype = query_dtype(sdf)  # the SDF's queries
         vertices, faces = mesh_tensors(mesh)
-        self.vertices, self.faces = vertices, faces  # torch, for the fallback and the caller
+        self.vertices, self.faces = vertices, faces  # torch, for the caller
         v, f = vertices.detach().cpu().numpy().astype(np.float64), faces.cpu().numpy()
         clusters, self._cluster_centre, self._cluster_radius = _clusters(v[f], v[f].mean(axis=1))
         # Inside, the faces lie cluster after cluster and the vertices in the order the faces first use them: a
@@ -278,7 +276,7 @@ class ProxyCollider:
 
     def _answer_key(self) -> tuple:
         """Colliders with the same key answer their faces alike and may ask the SDF together."""
-        return (id(self.sdf), id(self.proxy), self.method, self.iters, self.polish, self._dtype)
+        return (id(self.sdf), id(self.proxy), self._dtype)
 
     def _moved_at_most(self, then: np.ndarray, now: np.ndarray, search: float) -> float:
         """A bound (m) of how far a mesh point that can now lie within ``search`` of the SDF's bounding ball (centre s,
@@ -416,13 +414,7 @@ class ProxyCollider:
         where it stands tries again ``POLISH_SAMPLES`` times shorter), until the Frank-Wolfe gap is within
         ``DEEP_GAP_FRACTION`` of the ``margin`` (D,): -> bary (D, 3), values (D,), gradients (D, 3)."""
         stats.fallback += len(tri)
-        rows = np.arange(len(tri))
-        f_corner, g_corner = self._sdf_at(tri.reshape(-1, 3), stats)
-        corner = f_corner.reshape(-1, 3).argmin(axis=1)
-        lower = f_corner.reshape(-1, 3)[rows, corner] < f
-        bary, f, g = bary.copy(), f.copy(), g.copy()
-        bary[lower] = np.eye(3)[corner[lower]]
-        f[lower], g[lower] = f_corner.reshape(-1, 3)[rows, corner][lower], g_corner.reshape(-1, 3, 3)[rows, corner][lower]
+        bary, f, g = self._lowest_corner(tri, bary.copy(), f.copy(), g.copy(), stats)
         length = np.ones(len(tri))  # of the descent segment, as a fraction of the way to the face's boundary
         t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
         for _ in range(DEEP_STEPS):
@@ -440,6 +432,18 @@ class ProxyCollider:
             step = going[moved]
             bary[step], f[step], g[step] = along[at, best][moved], values[at, best][moved], grads[at, best][moved]
             length[going] = np.where(moved, 1.0, length[going] / POLISH_SAMPLES)
+        return bary, f, g
+
+    def _lowest_corner(self, tri, bary, f, g, stats):
+        """``bary`` (D, 3), ``f`` (D,), ``g`` (D, 3) (updated in place and returned) moved to each face's (D, 3, 3)
+        lowest corner where the SDF there is below ``f`` (one query)."""
+        rows = np.arange(len(tri))
+        f_corner, g_corner = self._sdf_at(tri.reshape(-1, 3), stats)
+        f_corner, g_corner = f_corner.reshape(-1, 3), g_corner.reshape(-1, 3, 3)
+        corner = f_corner.argmin(axis=1)
+        lower = f_corner[rows, corner] < f
+        bary[lower] = np.eye(3)[corner[lower]]
+        f[lower], g[lower] = f_corner[rows, corner][lower], g_corner[rows, corner][lower]
         return bary, f, g
 
     def _polish(self, tri, bary, g, stats):
