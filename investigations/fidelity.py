@@ -143,8 +143,9 @@ def compared(default: dict, full: dict) -> dict:
         apart = 0.01 * abs(default["end_qpos"] - full["end_qpos"])
     else:
         apart = sum((a - b) ** 2 for a, b in zip(*ends)) ** 0.5
+    ratio = lambda a, b: a / b if b else None  # noqa: E731  # the gears' median step has no contact
     return {"scene": default["scene"], "depth_ratio": default["deepest_mm"] / full["deepest_mm"],
-            "median_depth_ratio": default["median_deepest_mm"] / full["median_deepest_mm"],
+            "median_depth_ratio": ratio(default["median_deepest_mm"], full["median_deepest_mm"]),
             "ends_apart_mm": 1e3 * apart, "speedup": full["ms_per_step"] / default["ms_per_step"],
             **({"yardstick_ratio": default["yardstick_mm"] / full["yardstick_mm"]} if "yardstick_mm" in full else {})}
 
@@ -188,7 +189,7 @@ def main(argv=None) -> None:
             comparisons.append({"path": path, **compared(done[path], full)})
             c, run = comparisons[-1], done[path]
             print(f"{scene:>14}, {path}: deepest {run['deepest_mm']:.4f} mm (full {full['deepest_mm']:.4f}, "
-                  f"{c['depth_ratio']:.2f}x; a step's median {c['median_depth_ratio']:.2f}x); ends {c['ends_apart_mm']:.4f} mm "
+                  f"{c['depth_ratio']:.2f}x; a step's median {c['median_depth_ratio'] or 0:.2f}x); ends {c['ends_apart_mm']:.4f} mm "
                   f"apart; {run['ms_per_step']:.1f} ms a step (full {full['ms_per_step']:.0f})"
                   + (f"; yardstick {run['yardstick_mm']:.4f} mm (full {full['yardstick_mm']:.4f}, {c['yardstick_ratio']:.2f}x)"
                      if "yardstick_ratio" in c else ""), flush=True)

@@ -73,7 +73,7 @@ from .collider import POLISH_GAP_FRACTION, REUSE_FRACTION, CoherenceStats, moved
 from .collision import ContactArrays, Contacts, mesh_tensors
 from .errors import InputError
 from .geometry import face_normals, invert_pose, row_norms, unit_rows
-from .proxy import IN_BAND
+from .proxy import IN_BAND, UNKNOWN
 from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
 from .sdf import query_dtype, value_and_grad_numpy
 from .simplex import descent_segment, frank_wolfe_gap, on_simplex
@@ -241,6 +241,7 @@ class ProxyCollider:
             t1 = time.perf_counter()
             self._carried = _CarriedSearch(relative, search, found)
         if self.deferred and self.thin is not None:
+            found = self._deep_rows_answered(found, margin, stats)
             found = found.take(self._thinned(sdf_pose, rotation, search, found))
         else:
             found = found.take(np.flatnonzero(found.values <= search))
@@ -256,6 +257,25 @@ class ProxyCollider:
         self.last_stats = stats
         self.stats.add(stats)
         return contacts
+
+    def _deep_rows_answered(self, found: ProxyAnswers, margin: float, stats: CoherenceStats) -> ProxyAnswers:
+        """``found`` with the SDF's answers at its rows deeper than the band (``UNKNOWN``), before the thinning compares
+        depths: there the proxy's value is only a lower bound, which can lie far below the SDF's minimum, so a cell's
+        deepest by it may not be the SDF's (an impact of gear teeth). The answers are stored, so that the exact
+        answer keeps them; ``found`` itself is left as it is (a carried search holds it)."""
+        deep = np.flatnonzero(found.status == UNKNOWN)
+        if not deep.size:
+            return found
+        faces, tri, status = found.faces[deep], found.tri[deep], found.status[deep]
+        bary, values, grads = found.bary[deep].copy(), np.zeros(len(deep)), np.zeros((len(deep), 3))
+        kept = self._answers.unmoved(faces, tri, self.reuse_distance)  # as the exact answer keeps them
+        if kept.any():
+            bary[kept], values[kept], grads[kept] = self._answers.carried(faces[kept], tri[kept])
+        ask = np.flatnonzero(~kept)
+        if ask.size:
+            bary[ask], values[ask], grads[ask] = self._answer(tri[ask], bary[ask], status[ask], margin, stats)
+            self._answers.store(faces[ask], tri[ask], bary[ask], values[ask], grads[ask])
+        return found.with_answers(deep, bary, values, grads)
 
     def _thinned(self, sdf_pose, rotation, search: float, found: ProxyAnswers) -> np.ndarray:
         """The rows (K,) of ``found`` that are proxy contacts (at most ``search``) and that ``thin`` keeps (see
