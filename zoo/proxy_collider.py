@@ -241,7 +241,7 @@ class ProxyCollider:
             t1 = time.perf_counter()
             self._carried = _CarriedSearch(relative, search, found)
         if self.deferred and self.thin is not None:
-            found = self._deep_rows_answered(found, margin, stats)
+            found = self._deep_rows_answered(found, stats)
             found = found.take(self._thinned(sdf_pose, rotation, search, found))
         else:
             found = found.take(np.flatnonzero(found.values <= search))
@@ -258,24 +258,17 @@ class ProxyCollider:
         self.stats.add(stats)
         return contacts
 
-    def _deep_rows_answered(self, found: ProxyAnswers, margin: float, stats: CoherenceStats) -> ProxyAnswers:
-        """``found`` with the SDF's answers at its rows deeper than the band (``UNKNOWN``), before the thinning compares
-        depths: there the proxy's value is only a lower bound, which can lie far below the SDF's minimum, so a cell's
-        deepest by it may not be the SDF's (an impact of gear teeth). The answers are stored, so that the exact
-        answer keeps them; ``found`` itself is left as it is (a carried search holds it)."""
+    def _deep_rows_answered(self, found: ProxyAnswers, stats: CoherenceStats) -> ProxyAnswers:
+        """``found`` with the SDF's values and gradients at its rows deeper than the band (``UNKNOWN``), before the
+        thinning compares depths: there the proxy's value is only a lower bound, which can lie far below the SDF's
+        minimum, so a cell's deepest by it may not be the SDF's (an impact of gear teeth). One query at the proxy's
+        minimisers, not a search: the rows kept are answered in full afterwards. ``found`` itself is left as it is
+        (a carried search holds it)."""
         deep = np.flatnonzero(found.status == UNKNOWN)
         if not deep.size:
             return found
-        faces, tri, status = found.faces[deep], found.tri[deep], found.status[deep]
-        bary, values, grads = found.bary[deep].copy(), np.zeros(len(deep)), np.zeros((len(deep), 3))
-        kept = self._answers.unmoved(faces, tri, self.reuse_distance)  # as the exact answer keeps them
-        if kept.any():
-            bary[kept], values[kept], grads[kept] = self._answers.carried(faces[kept], tri[kept])
-        ask = np.flatnonzero(~kept)
-        if ask.size:
-            bary[ask], values[ask], grads[ask] = self._answer(tri[ask], bary[ask], status[ask], margin, stats)
-            self._answers.store(faces[ask], tri[ask], bary[ask], values[ask], grads[ask])
-        return found.with_answers(deep, bary, values, grads)
+        values, grads = self._sdf_at(np.einsum("dv,dvc->dc", found.bary[deep], found.tri[deep]), stats)
+        return found.with_answers(deep, found.bary[deep], values, grads)
 
     def _thinned(self, sdf_pose, rotation, search: float, found: ProxyAnswers) -> np.ndarray:
         """The rows (K,) of ``found`` that are proxy contacts (at most ``search``) and that ``thin`` keeps (see
