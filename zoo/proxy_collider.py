@@ -241,7 +241,7 @@ class ProxyCollider:
             t1 = time.perf_counter()
             self._carried = _CarriedSearch(relative, search, found)
         if self.deferred and self.thin is not None:
-            found = self._deep_rows_answered(found, stats)
+            found = self._deep_rows_valued(found, stats)
             found = found.take(self._thinned(sdf_pose, rotation, search, found))
         else:
             found = found.take(np.flatnonzero(found.values <= search))
@@ -258,7 +258,7 @@ class ProxyCollider:
         self.stats.add(stats)
         return contacts
 
-    def _deep_rows_answered(self, found: ProxyAnswers, stats: CoherenceStats) -> ProxyAnswers:
+    def _deep_rows_valued(self, found: ProxyAnswers, stats: CoherenceStats) -> ProxyAnswers:
         """``found`` with the SDF's values and gradients at its rows deeper than the band (``UNKNOWN``), before the
         thinning compares depths: there the proxy's value is only a lower bound, which can lie far below the SDF's
         minimum, so a cell's deepest by it may not be the SDF's (an impact of gear teeth). One query at the proxy's
@@ -268,7 +268,7 @@ class ProxyCollider:
         if not deep.size:
             return found
         values, grads = self._sdf_at(np.einsum("dv,dvc->dc", found.bary[deep], found.tri[deep]), stats)
-        return found.with_answers(deep, found.bary[deep], values, grads)
+        return found.with_values(deep, values, grads)
 
     def _thinned(self, sdf_pose, rotation, search: float, found: ProxyAnswers) -> np.ndarray:
         """The rows (K,) of ``found`` that are proxy contacts (at most ``search``) and that ``thin`` keeps (see
@@ -434,9 +434,7 @@ class ProxyCollider:
             going = np.flatnonzero(frank_wolfe_gap(tri, bary, g) > DEEP_GAP_FRACTION * margin)
             if not going.size:
                 break
-            direction, reach = descent_segment(tri[going], bary[going], g[going])
-            along = on_simplex(bary[going, None] + (t[None, :, None] * (length[going] * reach)[:, None, None])
-                               * direction[:, None])  # (G, S, 3)
+            along = _along_descent(tri[going], bary[going], g[going], t, length[going])  # (G, S, 3)
             values, grads = self._sdf_at(np.einsum("gsv,gvc->gsc", along, tri[going]).reshape(-1, 3), stats)
             values, grads = values.reshape(len(going), -1), grads.reshape(len(going), -1, 3)
             best = values.argmin(axis=1)
@@ -466,9 +464,7 @@ class ProxyCollider:
         if self.kernel == "numba":
             end = self._compiled_polish(tri, bary, g, stats)
         else:
-            direction, reach = descent_segment(tri, bary, g)
-            t = np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES
-            along = on_simplex(bary[:, None] + (t[None, :, None] * reach[:, None, None]) * direction[:, None])  # (P, S, 3)
+            along = _along_descent(tri, bary, g, np.arange(1, POLISH_SAMPLES + 1) / POLISH_SAMPLES, 1.0)  # (P, S, 3)
             values = counted_read(self.proxy, np.einsum("psv,pvc->psc", along, tri).reshape(-1, 3), stats)[0]
             end = along[np.arange(len(tri)), values.reshape(len(tri), -1).argmin(axis=1)]
         return (end, *self._sdf_at(np.einsum("pv,pvc->pc", end, tri), stats))
@@ -697,6 +693,14 @@ def _morton(q: np.ndarray) -> np.ndarray:
         for axis in range(3):
             code |= ((q[:, axis] >> bit) & 1) << (3 * bit + (2 - axis))
     return code
+
+
+def _along_descent(tri, bary, g, t, length) -> np.ndarray:
+    """Barycentric points (P, S, 3) at the fractions ``t`` (S,) of ``length`` (P,) or a float, each face's share of
+    its way to the boundary, along the steepest descent inside each face (P, 3, 3) from ``bary`` (P, 3) with the
+    gradients ``g`` (P, 3) there (:func:`zoo.simplex.descent_segment`)."""
+    direction, reach = descent_segment(tri, bary, g)
+    return on_simplex(bary[:, None] + (t[None, :, None] * (length * reach)[:, None, None]) * direction[:, None])
 
 
 def _row_indices(rows) -> np.ndarray:

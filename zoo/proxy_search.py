@@ -86,11 +86,11 @@ class ProxyAnswers:
         return ProxyAnswers(self.faces[rows], self.tri[rows], self.bary[rows], self.values[rows], self.grads[rows],
                             self.status[rows])
 
-    def with_answers(self, rows: np.ndarray, bary: np.ndarray, values: np.ndarray, grads: np.ndarray) -> ProxyAnswers:
-        """A copy whose rows ``rows`` (K,) hold the minimisers ``bary`` (K, 3), ``values`` (K,) and ``grads`` (K, 3)
-        given (the SDF's, where the proxy's were only a bound); this one is left as it is."""
-        out = ProxyAnswers(self.faces, self.tri, self.bary.copy(), self.values.copy(), self.grads.copy(), self.status)
-        out.bary[rows], out.values[rows], out.grads[rows] = bary, values, grads
+    def with_values(self, rows: np.ndarray, values: np.ndarray, grads: np.ndarray) -> ProxyAnswers:
+        """A copy whose rows ``rows`` (K,) hold the ``values`` (K,) and ``grads`` (K, 3) given (the SDF's, where the
+        proxy's were only a bound); this one is left as it is."""
+        out = ProxyAnswers(self.faces, self.tri, self.bary, self.values.copy(), self.grads.copy(), self.status)
+        out.values[rows], out.grads[rows] = values, grads
         return out
 
     def points(self) -> np.ndarray:
