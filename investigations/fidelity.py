@@ -23,6 +23,9 @@ deepest penetration moves by tens of micrometres from one contact choice to the 
 a noisy figure. Each path is then also compared by the median over the starts of each start's deepest, and the
 spread of the full path's own deepest over the starts is the scale to read a ratio against.
 
+With ``--friction F``, every scene runs with friction F in place of its own (the gears with 0: their deepest comes
+from a jam that friction at a tooth's chamfered rim makes, docs/proxy.md).
+
 With ``--yardstick``, each path's poses are also measured by one yardstick, whatever the path: at the poses each step
 of the window detected its contacts at, ``zoo bench --sim``'s (``benches/sim_bench.py``'s ``yardstick_depth``: FW-100,
 margin 0, every NeuralSDF-mesh pair; slow: some 10,000 of the nut's faces lie within microns of the bolt).
@@ -60,9 +63,9 @@ import zoo, zoo.sim
 from sdfzoo.benches.sim_bench import sdf_mesh_pairs, yardstick_depth
 from sdfzoo.benches.sim_scenarios import NUT_KV, NUT_SPEED, NUT_TORQUE
 scene, steps, lo, hi, options, path = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), json.loads(sys.argv[5]), json.loads(sys.argv[6])
-yardstick, shift = sys.argv[7] == "yardstick", json.loads(sys.argv[8])
+yardstick, shift, friction = sys.argv[7] == "yardstick", json.loads(sys.argv[8]), json.loads(sys.argv[9])
 nut = "torque" in options
-sim = zoo.sim.load_scene(scene, drop=options.get("drop"), **path)
+sim = zoo.sim.load_scene(scene, drop=options.get("drop"), **path, **({} if friction is None else {"friction": friction}))
 sim.build()
 body = options.get("body", "nut" if nut else "sdf")  # scenes/mug-rack.toml names its mug "sdf"
 joint = sim.model.body(body).jntadr[0]
@@ -104,14 +107,16 @@ print(json.dumps(row))
 STARTS = {"as is": (0, 0, 0), "+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0)}  # --starts' order
 
 
-def one_run(scene: str, path: str, yardstick: bool = False, start: str = "as is", shift: float = 0.0) -> dict:
+def one_run(scene: str, path: str, yardstick: bool = False, start: str = "as is", shift: float = 0.0,
+            friction: float | None = None) -> dict:
     """One run of ``scene`` on ``path`` in its own process, the tracked body's start moved ``shift`` (m) along
-    ``start`` (a key of ``STARTS``)."""
+    ``start`` (a key of ``STARTS``), with ``friction`` for the scene's (None: its own)."""
     file, steps, (lo, hi), options = SCENES[scene]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     moved = [shift * c for c in STARTS[start]]
     done = subprocess.run([sys.executable, "-c", ONE_RUN, file, str(steps), str(lo), str(hi), json.dumps(options),
-                           json.dumps(PATHS[path]), "yardstick" if yardstick else "own", json.dumps(moved)],
+                           json.dumps(PATHS[path]), "yardstick" if yardstick else "own", json.dumps(moved),
+                           json.dumps(friction)],
                           env=env, capture_output=True, text=True, timeout=7200)
     if done.returncode:
         raise RuntimeError(done.stderr[-3000:])
@@ -162,16 +167,17 @@ def main(argv=None) -> None:
     parser.add_argument("--starts", type=int, choices=range(1, len(STARTS) + 1), default=1,
                         help="each run also from up to four starts moved by --shift (see the module docstring)")
     parser.add_argument("--shift", type=float, default=1e-6, help="m, how far --starts moves a start")
+    parser.add_argument("--friction", type=float, help="every scene's friction (default: each scene's own)")
     parser.add_argument("--out", default="out/fidelity.json")
     args = parser.parse_args(argv)
     runs, comparisons, spreads = [], [], []
     paths = args.path or sorted(PATHS)
     for scene in args.scene or SCENES:
-        done = {path: one_run(scene, path, args.yardstick) for path in paths}
+        done = {path: one_run(scene, path, args.yardstick, friction=args.friction) for path in paths}
         runs += list(done.values())
         if args.starts > 1:
-            moved = [one_run(scene, path, args.yardstick, start, args.shift) for start in list(STARTS)[1:args.starts]
-                     for path in paths]
+            moved = [one_run(scene, path, args.yardstick, start, args.shift, args.friction)
+                     for start in list(STARTS)[1:args.starts] for path in paths]
             runs += moved
             spreads.append(over_starts(scene, list(done.values()) + moved))
             print(f"{scene:>14} over {args.starts} starts: " + "; ".join(

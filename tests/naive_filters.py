@@ -7,17 +7,19 @@ import numpy as np
 from zoo.contact_filters import GRAZING_COS, SEPARATED_COS
 
 
-def facing_faces(normals: np.ndarray, faces: np.ndarray, depths: np.ndarray) -> np.ndarray:
+def facing_faces(normals: np.ndarray, faces: np.ndarray, depths: np.ndarray, slack: float = 0.0) -> np.ndarray:
     """(K,) bool: the contact's SDF normal (K, 3) is close enough to its face's unit normal (K, 3), zeros: degenerate
-    (kept): |cos| at least ``GRAZING_COS`` where it touches (depth <= 0), ``SEPARATED_COS`` where separated."""
+    (kept): |cos| at least ``GRAZING_COS`` where it may touch (depth - ``slack`` <= 0), ``SEPARATED_COS`` where
+    separated."""
     cos = np.abs(np.einsum("ij,ij->i", normals, faces))
     degenerate = ~(np.abs(faces).sum(axis=1) > 0)
-    return (cos >= np.where(depths > 0, SEPARATED_COS, GRAZING_COS)) | degenerate
+    return (cos >= np.where(depths - slack > 0, SEPARATED_COS, GRAZING_COS)) | degenerate
 
 
 def closing_in_time(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, sdf_motion, mesh_motion,
-                    seconds: float) -> np.ndarray:
-    """(K,) bool: the contact touches (depth <= 0) or its bodies close its gap within ``seconds``.
+                    seconds: float, slack: float = 0.0) -> np.ndarray:
+    """(K,) bool: the contact may touch (depth - ``slack`` <= 0) or its bodies close what is left of its gap within
+    ``seconds``.
 
     Args:
         points (K, 3), depths (K,), normals (K, 3): the contacts, world frame; normals from the SDF body to the mesh body.
@@ -28,7 +30,8 @@ def closing_in_time(points: np.ndarray, depths: np.ndarray, normals: np.ndarray,
         return velocity[:3] + np.cross(velocity[3:], points - origin)
 
     closing = np.einsum("ij,ij->i", point_velocity(sdf_motion) - point_velocity(mesh_motion), normals)
-    return (depths <= 0) | (closing * seconds >= depths)
+    least = depths - slack
+    return (least <= 0) | (closing * seconds >= least)
 
 
 def relative_motion(sdf_motion, mesh_motion) -> tuple[np.ndarray, np.ndarray]:

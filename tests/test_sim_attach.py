@@ -382,6 +382,49 @@ def test_the_grasp_is_the_same_to_the_last_bit_whatever_the_proxy_cache_held(tmp
     np.testing.assert_array_equal(states[2], states[0])
 
 
+@pytest.mark.parametrize("reduce", ["exact", False])
+def test_a_contact_the_proxy_reads_as_separated_reaches_mujoco_at_the_sdfs_depth(reduce):
+    """A ball at rest 20 um into a box, on a coarse proxy (4 mm cells) that reads its lowest point 40-60 um above the
+    box (the trilinear interpolant of a convex SDF lies above it mid-cell): filtered on the proxy's depth, that
+    contact is separated and not closing, and was dropped before the SDF saw it. Where the SDF's depths decide
+    (``reduce="exact"`` or False), the filters take a proxy's depth at its least (less its error bound) and the SDF's
+    answer decides: MuJoCo gets the contact at the SDF's depth."""
+    from zoo.contact_filters import GRAZING_COS, SEPARATED_COS, usable_rows
+    from zoo.proxy import bake_proxy
+
+    sphere = zoo.Sphere(radius=BALL)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=4e-3)
+    # the surface point, near the bottom, that the proxy reads furthest above the sphere: it is turned to the bottom
+    angles = np.radians(np.linspace(0.0, 8.0, 33))
+    tilt, turn = (a.ravel() for a in np.meshgrid(angles, np.linspace(0.0, 2 * np.pi, 24, endpoint=False)))
+    down = np.stack([np.sin(tilt) * np.cos(turn), np.sin(tilt) * np.sin(turn), -np.cos(tilt)], axis=1)
+    above = proxy.read_numpy(BALL * down)[0]
+    best = int(np.argmax(above))
+    assert above[best] > 4e-5 and above[best] < proxy.error_bound
+    sink = 2e-5
+    # the ball's orientation takes that point to straight below its centre: a rotation about axis down x (0, 0, -1)
+    axis = np.cross(down[best], [0.0, 0.0, -1.0])
+    angle = np.arcsin(np.linalg.norm(axis))
+    quat = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis / max(np.linalg.norm(axis), 1e-12)])
+    xml = _ball_on('<geom type="box" size="0.2 0.2 0.05" pos="0 0 -0.05"/>', BALL - sink).replace(
+        f'pos="0 0 {BALL - sink}"', f'pos="0 0 {BALL - sink}" quat="{" ".join(map(str, quat))}"')
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    world = zoo.sim.attach(model, {"ball": sphere}, method="fw", proxy={"ball": proxy}, reduce=reduce)
+    mujoco.mj_forward(model, data)
+    world.add_contacts(data)
+    contacts = world.contacts
+    assert len(contacts) >= 1
+    assert float(contacts.depths.min()) == pytest.approx(-sink, abs=2e-6)  # the SDF's depth, not the proxy's
+    # on the proxy's depth at the ball's lowest point (at rest: nothing closes), the filter drops it without the slack
+    up = np.array([[0.0, 0.0, 1.0]])
+    bottom = np.array([[0.0, 0.0, 0.0]])
+    reading = np.array([above[best] - sink])
+    for slack, expected in ((0.0, False), (proxy.error_bound, True)):
+        assert usable_rows(bottom, reading, up, up, np.zeros(3), np.zeros(3), 0.003, GRAZING_COS, SEPARATED_COS,
+                           slack)[0] == expected
+
+
 def test_surface_extraction_queries_near_the_surface_only_and_matches_a_dense_grid(monkeypatch):
     """zoo.sim.surface's narrow-band sampling gives the dense grid's signs everywhere and its values near the surface;
     a sphere's extracted vertices lie on it within a small fraction of a cell."""

@@ -20,6 +20,14 @@ approach), at any distance. A separated contact is kept only where the bodies cl
 speculative contact that stops a fast body before it crosses a thin wall, not a brake on two bodies passing close by.
 The pair's relative motion is (u, w): u + w x p is the SDF body's velocity less the mesh body's at the world point p.
 
+**A proxy's depths.** A proxy collider's contacts carry the proxy's depths, within its error bound of the SDF's, until
+the SDF answers the rows kept. Filtered on them, a face the SDF has touching by a few micrometres can read as
+separated and be dropped before the SDF is asked (a nut's threads lost contacts that held it up). Where the SDF
+answers every usable row before the reduction (``zoo.sim``'s ``reduce="exact"`` or False), the tests take such a depth
+at its least (``slack``: the depth less the bound), and the SDF's answers are filtered again without it. The default
+reduction picks on the proxy's depths: there a row the slack let through, picked for a patch's manifold and dropped
+once the SDF answers it, would cost the patch its point, so no slack is taken (``zoo.sim.pairs.MeshPair.depth_slack``).
+
 ``import zoo`` does not load this module, nor numba.
 """
 
@@ -60,17 +68,19 @@ def closing_speed(shift, turn, point, normal):
 
 
 @njit(cache=True)
-def usable(depth, cos, degenerate, speed, seconds, touching_cos, separated_cos):
-    """Whether a contact at ``depth`` (m; > 0 separated) is usable: the cosine ``cos`` between its normal and its face's
-    is at least ``touching_cos`` in absolute value (``separated_cos`` where separated) or the face is ``degenerate``,
-    and it touches or, closing at ``speed`` (m/s), closes within ``seconds`` (< 0: every separated one does)."""
-    if not degenerate and abs(cos) < (separated_cos if depth > 0 else touching_cos):
+def usable(depth, cos, degenerate, speed, seconds, touching_cos, separated_cos, slack):
+    """Whether a contact at ``depth`` (m; > 0 separated), known within ``slack`` (m; 0: exactly) and taken at its least,
+    is usable: the cosine ``cos`` between its normal and its face's is at least ``touching_cos`` in absolute value
+    (``separated_cos`` where separated) or the face is ``degenerate``, and it touches or, closing at ``speed`` (m/s),
+    closes within ``seconds`` (< 0: every separated one does)."""
+    least = depth - slack
+    if not degenerate and abs(cos) < (separated_cos if least > 0 else touching_cos):
         return False
-    return depth <= 0 or seconds < 0 or speed * seconds >= depth
+    return least <= 0 or seconds < 0 or speed * seconds >= least
 
 
 @njit(cache=True)
-def usable_rows(points, depths, normals, face_normals, shift, turn, seconds, touching_cos, separated_cos):
+def usable_rows(points, depths, normals, face_normals, shift, turn, seconds, touching_cos, separated_cos, slack):
     """(K,) bool: the contacts a simulation can use (see the module docstring).
 
     Args:
@@ -79,6 +89,7 @@ def usable_rows(points, depths, normals, face_normals, shift, turn, seconds, tou
         face_normals (K, 3): their mesh faces' unit normals, world frame (zeros: degenerate).
         shift (3,), turn (3,): the pair's relative motion u, w; seconds: the time it has to close a gap (< 0: any).
         touching_cos, separated_cos: the facing test's cosines (``GRAZING_COS``, ``SEPARATED_COS``).
+        slack: m, how far the depths may lie from the SDF's (a proxy's error bound; 0: they are the SDF's).
     """
     n = depths.shape[0]
     keep = np.empty(n, dtype=np.bool_)
@@ -86,6 +97,6 @@ def usable_rows(points, depths, normals, face_normals, shift, turn, seconds, tou
         f = face_normals[i]
         cos = f[0] * normals[i, 0] + f[1] * normals[i, 1] + f[2] * normals[i, 2]
         degenerate = f[0] == 0 and f[1] == 0 and f[2] == 0
-        speed = closing_speed(shift, turn, points[i], normals[i]) if depths[i] > 0 else 0.0
-        keep[i] = usable(depths[i], cos, degenerate, speed, seconds, touching_cos, separated_cos)
+        speed = closing_speed(shift, turn, points[i], normals[i]) if depths[i] > slack else 0.0
+        keep[i] = usable(depths[i], cos, degenerate, speed, seconds, touching_cos, separated_cos, slack)
     return keep

@@ -107,8 +107,9 @@ class Thinning:
     most 0, ``separated_cos`` beyond; a degenerate face always does) and, separated, close within the time
     (``closing``, a :class:`zoo.contact_filters.Closing` (u, w, seconds): u + w x p is the SDF body's velocity less
     the mesh's at the world point p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None:
-    every one counts). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to every
-    pair's contacts, and its reduction keeps at most the deepest per
+    every one counts), each test taking a depth at its least, the depth less ``slack`` (m: the proxy's error bound,
+    as a simulation sets it). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to
+    every pair's proxy contacts, and its reduction keeps at most the deepest per
     such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
     faces within the margin, not more contacts in the manifold)."""
 
@@ -117,6 +118,7 @@ class Thinning:
     separated_cos: float
     closing: Closing | None = None
     band: float = 0.0
+    slack: float = 0.0
 
 
 class ProxyCollider:
@@ -280,7 +282,7 @@ class ProxyCollider:
         return thinned_rows(found.values, found.bary, found.tri, found.grads, found.faces, search, self._normal,
                             rotation, sdf_pose[:3, :3], sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
                             np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds),
-                            float(thin.band))
+                            float(thin.band), float(thin.slack))
 
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in

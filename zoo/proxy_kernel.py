@@ -467,7 +467,7 @@ def near_deepest_per_cell(cells, values, band):
 
 @njit(cache=True)
 def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation, sdf_rotation, sdf_shift, cell,
-                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band):
+                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band, slack):
     """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
     contacts (the answers at most ``search``), in one pass: per cell, those a simulation can use
     (:func:`zoo.contact_filters.usable`) within ``band`` of the deepest of them.
@@ -478,7 +478,8 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
             mesh's in the SDF's frame. sdf_rotation (3, 3), sdf_shift (3,): the SDF's pose in the world.
         cell, touching_cos, separated_cos: the ``Thinning``'s; closing_shift (3,), closing_turn (3,),
             closing_seconds: its ``closing`` (:class:`zoo.contact_filters.Closing`; seconds < 0: none).
-        band: m, the ``Thinning``'s (0: the deepest and its equals).
+        band: m, the ``Thinning``'s (0: the deepest and its equals); slack: m, its ``slack`` (the filters' tests take
+            a proxy depth at its least, the depth less this).
     """
     n = values.shape[0]
     cells = np.empty((n, 3), dtype=np.int64)
@@ -506,8 +507,8 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
                         + sdf_rotation[a, 2] * (bary[i, 0] * tri[i, 0, 2] + bary[i, 1] * tri[i, 1, 2] + bary[i, 2] * tri[i, 2, 2])
                         + sdf_shift[a])
             normal[a] = sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz
-        speed = closing_speed(closing_shift, closing_turn, world, normal) if value > 0 else 0.0
-        if not usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos):
+        speed = closing_speed(closing_shift, closing_turn, world, normal) if value > slack else 0.0
+        if not usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos, slack):
             continue
         for a in range(3):
             cells[m, a] = int(math.floor(world[a] / cell))

@@ -151,6 +151,12 @@ class Pair:
         return False
 
     @property
+    def depth_slack(self) -> float:
+        """m: how far below its depths the filters take the contacts ``collide`` returns (0: as they are). A deferred
+        pair's are its proxy's, within the proxy's error bound of the SDF's; see :meth:`MeshPair.depth_slack`."""
+        return 0.0
+
+    @property
     def stats(self):
         """``zoo.collider.CoherenceStats`` of its collider so far (None: it has none)."""
         return None
@@ -316,6 +322,14 @@ class MeshPair(SurfacePair):
         return bool(getattr(self.collider, "deferred", False))
 
     @property
+    def depth_slack(self) -> float:
+        """The proxy's error bound where the SDF's depths decide what is kept (``reduce="exact"`` or False: the SDF
+        answers every usable row before the reduction, and its answers are filtered again, without slack); 0 where
+        the reduction picks on the proxy's depths (the default): a row let through by the slack and picked for a
+        patch's manifold would be dropped once the SDF answers it, and the patch would lose its point."""
+        return self.collider.proxy.error_bound if self.deferred and self.settings.reduce != True else 0.0  # noqa: E712
+
+    @property
     def stats(self):
         return self.collider.stats
 
@@ -362,8 +376,10 @@ def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters
     if settings.reduce and collider.deferred:  # only what the reduction can keep comes back
         from ..proxy_collider import Thinning
 
-        band = 2 * collider.proxy.error_bound if settings.reduce == "exact" else 0.0
-        collider.thin = Thinning(MERGE_CELL * sdf_body.merge_distance, GRAZING_COS, SEPARATED_COS, band=band)
+        on_sdf = settings.reduce == "exact"  # the reduction picks on the SDF's depths: see MeshPair.depth_slack
+        bound = collider.proxy.error_bound
+        collider.thin = Thinning(MERGE_CELL * sdf_body.merge_distance, GRAZING_COS, SEPARATED_COS,
+                                 band=2 * bound if on_sdf else 0.0, slack=bound if on_sdf else 0.0)
     refined_mesh = RefinedMesh(refined_vertices, refined_faces, cover, face_normals(refined_vertices[refined_faces]))
     return MeshPair(**common, **box, refined=refined_mesh, collider=collider)
 

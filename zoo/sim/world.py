@@ -69,12 +69,15 @@ TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within th
 class PairContacts:
     """One pair's contacts at a step (:class:`zoo.collision.ContactArrays`, world frame) and the rows of them MuJoCo
     can use: ``mesh_normals`` (K, 3) their mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows
-    kept so far, ``reduced`` whether those are already the reduction's."""
+    kept so far, ``closing`` the pair's relative motion and ``slack`` (m) they were filtered with, ``reduced`` whether
+    those rows are already the reduction's."""
 
     pair: Pair
     contacts: ContactArrays
     mesh_normals: np.ndarray
     usable: np.ndarray
+    closing: Closing
+    slack: float = 0.0
     reduced: bool = False
 
 
@@ -216,7 +219,7 @@ class World:
         for sdf_body in self.bodies.values():
             value_and_grad_numpy(sdf_body.sdf, np.zeros((1, 3)), query_dtype(sdf_body.sdf))
         row, up = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
-        usable_rows(row, np.zeros(1), up, up, np.zeros(3), np.zeros(3), -1.0, GRAZING_COS, SEPARATED_COS)
+        usable_rows(row, np.zeros(1), up, up, np.zeros(3), np.zeros(3), -1.0, GRAZING_COS, SEPARATED_COS, 0.0)
         reduce_contacts(row, np.zeros(1), up, up, merge_tol=1e-3)
 
     def _geom_id(self, name: str) -> int:
@@ -442,10 +445,10 @@ class World:
     @staticmethod
     def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts:
         """The pair's contacts (at least one) with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`):
-        facing their faces, and touching or closing within the step."""
-        usable = usable_rows(contacts.points, contacts.depths, contacts.normals, mesh_normals, *closing, GRAZING_COS,
-                             SEPARATED_COS)
-        return PairContacts(pair, contacts, mesh_normals, np.flatnonzero(usable))
+        facing their faces, and touching or closing within the step (the depths taken ``pair.depth_slack`` below)."""
+        slack = pair.depth_slack
+        return PairContacts(pair, contacts, mesh_normals, usable_of(contacts, mesh_normals, closing, slack), closing,
+                            slack)
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
@@ -467,8 +470,9 @@ class World:
     @staticmethod
     def exact_answers(found: list[PairContacts]) -> list[PairContacts]:
         """``found`` with the SDF's own contacts in place of the proxy's where a pair's proxy chose them (at its usable
-        rows, those whose SDF depth is beyond the margin dropped, every row of the rest usable): the pairs of a step
-        on one SDF ask it together (:func:`zoo.proxy_collider.exact_contacts_together`)."""
+        rows, those whose SDF depth is beyond the margin dropped, and where the proxy's were filtered with a slack,
+        the rest filtered again on the SDF's depths and normals): the pairs of a step on one SDF ask it together
+        (:func:`zoo.proxy_collider.exact_contacts_together`)."""
         from ..proxy_collider import exact_arrays_together
 
         deferred = [i for i, f in enumerate(found) if len(f.usable) and f.pair.deferred]
@@ -482,10 +486,19 @@ class World:
             answered = np.isin(asked.contacts.triangles[asked.usable], contacts.triangles)
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
-            found[i] = PairContacts(asked.pair, contacts, mesh_normals, np.arange(len(contacts)), asked.reduced)
+            # a row the slack let through may be separated on the SDF, and not close in time
+            usable = usable_of(contacts, mesh_normals, asked.closing, 0.0) if asked.slack else np.arange(len(contacts))
+            found[i] = PairContacts(asked.pair, contacts, mesh_normals, usable, asked.closing, reduced=asked.reduced)
         return found
 
 # -- helpers ---------------------------------------------------------------------------------------
+
+
+def usable_of(contacts: ContactArrays, mesh_normals: np.ndarray, closing: Closing, slack: float) -> np.ndarray:
+    """The rows (U,) of ``contacts`` MuJoCo can use (:func:`zoo.contact_filters.usable_rows`), their depths known
+    within ``slack`` (m)."""
+    return np.flatnonzero(usable_rows(contacts.points, contacts.depths, contacts.normals, mesh_normals, *closing,
+                                      GRAZING_COS, SEPARATED_COS, float(slack)))
 
 
 def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
