@@ -327,7 +327,7 @@ class MeshPair(SurfacePair):
         answers every usable row before the reduction, and its answers are filtered again, without slack); 0 where
         the reduction picks on the proxy's depths (the default): a row let through by the slack and picked for a
         patch's manifold would be dropped once the SDF answers it, and the patch would lose its point."""
-        return self.collider.proxy.error_bound if self.deferred and self.settings.reduce != True else 0.0  # noqa: E712
+        return self.collider.proxy.error_bound if self.deferred and self.settings.reduce is not True else 0.0
 
     @property
     def stats(self):
