@@ -26,7 +26,7 @@ separated and be dropped before the SDF is asked (a nut's threads lost contacts 
 answers every usable row before the reduction (``zoo.sim``'s ``reduce="exact"`` or False), the tests take such a depth
 at its least (``slack``: the depth less the bound), and the SDF's answers are filtered again without it. The default
 reduction picks on the proxy's depths: there a row the slack let through, picked for a patch's manifold and dropped
-once the SDF answers it, would cost the patch its point, so no slack is taken (``zoo.sim.pairs.MeshPair.depth_slack``).
+once the SDF answers it, would cost the patch its point, so no slack is taken (``zoo.sim.pairs.proxy_slack``).
 
 ``import zoo`` does not load this module, nor numba.
 """

@@ -153,7 +153,7 @@ class Pair:
     @property
     def depth_slack(self) -> float:
         """m: how far below its depths the filters take the contacts ``collide`` returns (0: as they are). A deferred
-        pair's are its proxy's, within the proxy's error bound of the SDF's; see :meth:`MeshPair.depth_slack`."""
+        pair's are its proxy's, within the proxy's error bound of the SDF's; see :func:`proxy_slack`."""
         return 0.0
 
     @property
@@ -323,11 +323,7 @@ class MeshPair(SurfacePair):
 
     @property
     def depth_slack(self) -> float:
-        """The proxy's error bound where the SDF's depths decide what is kept (``reduce="exact"`` or False: the SDF
-        answers every usable row before the reduction, and its answers are filtered again, without slack); 0 where
-        the reduction picks on the proxy's depths (the default): a row let through by the slack and picked for a
-        patch's manifold would be dropped once the SDF answers it, and the patch would lose its point."""
-        return self.collider.proxy.error_bound if self.deferred and self.settings.reduce is not True else 0.0
+        return proxy_slack(self.settings.reduce, self.collider.proxy) if self.deferred else 0.0
 
     @property
     def stats(self):
@@ -346,6 +342,15 @@ class MeshPair(SurfacePair):
         if not self.deferred:  # a deferred pair's are named when the SDF answers them
             contacts.triangles = self.refined.surface_faces(contacts.triangles, contacts.bary)
         return contacts, mesh_normals
+
+
+def proxy_slack(reduce: bool | str, proxy) -> float:
+    """m: how far below a proxy's depths the contact filters take them, for a World built with ``reduce``: the
+    proxy's error bound where the SDF's depths decide what is kept (``"exact"`` or False: the SDF answers every usable
+    row before the reduction, and its answers are filtered again without slack); 0 where the reduction picks on the
+    proxy's depths (True, the default): a row let through by the slack and picked for a patch's manifold would be
+    dropped once the SDF answers it, and the patch would lose its point."""
+    return proxy.error_bound if reduce is not True else 0.0
 
 
 def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters, frame: str, surface,
@@ -376,10 +381,9 @@ def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters
     if settings.reduce and collider.deferred:  # only what the reduction can keep comes back
         from ..proxy_collider import Thinning
 
-        on_sdf = settings.reduce == "exact"  # the reduction picks on the SDF's depths: see MeshPair.depth_slack
-        bound = collider.proxy.error_bound
-        collider.thin = Thinning(MERGE_CELL * sdf_body.merge_distance, GRAZING_COS, SEPARATED_COS,
-                                 band=2 * bound if on_sdf else 0.0, slack=bound if on_sdf else 0.0)
+        band = 2 * collider.proxy.error_bound if settings.reduce == "exact" else 0.0
+        collider.thin = Thinning(MERGE_CELL * sdf_body.merge_distance, GRAZING_COS, SEPARATED_COS, band=band,
+                                 slack=proxy_slack(settings.reduce, collider.proxy))
     refined_mesh = RefinedMesh(refined_vertices, refined_faces, cover, face_normals(refined_vertices[refined_faces]))
     return MeshPair(**common, **box, refined=refined_mesh, collider=collider)
 

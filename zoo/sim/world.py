@@ -69,15 +69,14 @@ TESSELLATION_TOLERANCE = 1e-4  # m: a curved primitive's triangles lie within th
 class PairContacts:
     """One pair's contacts at a step (:class:`zoo.collision.ContactArrays`, world frame) and the rows of them MuJoCo
     can use: ``mesh_normals`` (K, 3) their mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows
-    kept so far, ``closing`` the pair's relative motion and ``slack`` (m) they were filtered with, ``reduced`` whether
-    those rows are already the reduction's."""
+    kept so far, ``closing`` the pair's relative motion they were filtered with (their depths taken
+    ``pair.depth_slack`` below), ``reduced`` whether those rows are already the reduction's."""
 
     pair: Pair
     contacts: ContactArrays
     mesh_normals: np.ndarray
     usable: np.ndarray
     closing: Closing
-    slack: float = 0.0
     reduced: bool = False
 
 
@@ -446,9 +445,8 @@ class World:
     def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts:
         """The pair's contacts (at least one) with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`):
         facing their faces, and touching or closing within the step (the depths taken ``pair.depth_slack`` below)."""
-        slack = pair.depth_slack
-        return PairContacts(pair, contacts, mesh_normals, usable_of(contacts, mesh_normals, closing, slack), closing,
-                            slack)
+        return PairContacts(pair, contacts, mesh_normals, usable_of(contacts, mesh_normals, closing, pair.depth_slack),
+                            closing)
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
@@ -487,7 +485,8 @@ class World:
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
             # a row the slack let through may be separated on the SDF, and not close in time
-            usable = usable_of(contacts, mesh_normals, asked.closing, 0.0) if asked.slack else np.arange(len(contacts))
+            slack = asked.pair.depth_slack
+            usable = usable_of(contacts, mesh_normals, asked.closing, 0.0) if slack else np.arange(len(contacts))
             found[i] = PairContacts(asked.pair, contacts, mesh_normals, usable, asked.closing, reduced=asked.reduced)
         return found
 
