@@ -8,6 +8,8 @@ inputs give empty contacts.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -17,6 +19,7 @@ import zoo
 from zoo.geometry import barycentric_grid
 from zoo.proxy import bake_proxy
 from zoo.proxy_collider import CLUSTER, KERNELS, ProxyCollider, _clusters
+from zoo.sdf import SDFBase
 
 
 def brute_minima(sdf, tri: torch.Tensor, resolution: int = 40) -> torch.Tensor:
@@ -140,6 +143,42 @@ def test_compiled_passes_answer_as_the_numpy_passes():
             assert getattr(sa, count) == getattr(sb, count), count
         compared += len(a)
     assert compared > 50 and colliders["numba"].stats.warm > 0 and colliders["numba"].proxy.lazy_bricks > 0
+
+
+class WavyFloor(SDFBase):
+    """Height above a floor that waves along x (period 30 mm, 0.1 mm high) and dips 0.4 mm once (about x = 73.1 mm),
+    scaled to stay 1-Lipschitz: along a face long in x, local minima and one deepest, as a gear's flank meets a
+    NeuralSDF that varies along it."""
+
+    bounds = (torch.tensor([-0.03, -0.02, -0.01]), torch.tensor([0.1, 0.02, 0.01]))
+
+    def _distance(self, p):
+        x = p[:, 0]
+        floor = 1e-4 * torch.sin(2 * math.pi * x / 3e-2) - 4e-4 * torch.exp(-(((x - 0.0731) / 3e-3) ** 2))
+        return (p[:, 2] + floor) / 1.2
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_a_long_faces_cold_search_starts_along_its_length(kernel, monkeypatch):
+    """A sliver 100 mm long (100 proxy cells) 0.5 mm over the wavy floor: the pattern's starts lie 6 mm and more
+    from the deepest dip and their descents stop in another minimum; the starts along the sliver's length
+    (zoo.proxy_search.line_starts, one every 4 cells) find the brute-force minimum within 2 um."""
+    import zoo.proxy_search
+
+    sdf = WavyFloor()
+    proxy = bake_proxy(sdf, margin=1e-3, spacing=1e-3)
+    vertices = np.array([[-0.016, 0.0, 5e-4], [0.084, -5e-4, 5e-4], [0.084, 5e-4, 5e-4]], dtype=np.float32)
+    mesh = (vertices, np.array([[0, 1, 2]]))
+    truth = float(brute_minima(sdf, world_triangles(mesh, np.eye(4), None), resolution=400)[0])
+
+    def answer() -> float:
+        contacts = ProxyCollider(sdf, mesh, proxy, margin=1e-3, method="fw", kernel=kernel)(np.eye(4), None)
+        assert contacts.triangles.tolist() == [0]
+        return float(contacts.depths[0])
+
+    assert abs(answer() - truth) < 2e-6
+    monkeypatch.setattr(zoo.proxy_search, "LINE_START_CELLS", 10**9)  # the pattern's starts alone
+    assert answer() - truth > 5e-5
 
 
 def test_held_faces_are_those_that_hold_no_contact():

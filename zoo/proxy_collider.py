@@ -15,7 +15,9 @@ against); neither loops over faces in Python:
 3. **Search.** A face whose lowest vertex is a KKT point on the proxy (its Frank-Wolfe gap below ``CONVERGED_GAP``
    of the margin) has that vertex as its answer; one the screen (:func:`zoo.coherence.screen_bound`'s bound) puts
    above the search margin is dropped. The others start from their last answer (a warm start) or, new, from the
-   lowest of ``PATTERN``'s inner points (one read for all), and take up to ``SEARCH_STEPS`` projected-gradient
+   lowest of ``PATTERN``'s inner points and, on a face at least ``LINE_START_CELLS`` proxy cells long, of points
+   along its length (:func:`zoo.proxy_search.line_starts`: a long sliver's minima lie between the pattern's
+   points), and take up to ``SEARCH_STEPS`` projected-gradient
    steps (``WARM_SEARCH_STEPS`` for a warm one), each a line search to where the steepest descent inside the
    triangle leaves it (two reads), leaving the search as the gap or the screen settles them. A point out of the
    proxy's band takes no step: there the read is a bound, f(c) - L |p - c| from its brick's centre c, and its
@@ -74,7 +76,7 @@ from .collision import ContactArrays, Contacts, mesh_tensors
 from .errors import InputError
 from .geometry import face_normals, invert_pose, row_norms, unit_rows
 from .proxy import IN_BAND, UNKNOWN
-from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, numpy_search
+from .proxy_search import FaceMemory, ProxyAnswers, SearchCall, SearchMesh, counted_read, line_starts, numpy_search
 from .sdf import query_dtype, value_and_grad_numpy
 from .simplex import descent_segment, frank_wolfe_gap, on_simplex
 from .validation import as_pose_array, non_negative_float
@@ -177,7 +179,7 @@ class ProxyCollider:
         lo, hi = (np.asarray(torch.as_tensor(b, dtype=torch.float64).cpu()).reshape(3) for b in proxy.bounds)
         self._lo, self._hi = lo, hi
         self._mesh = SearchMesh(self._f, self._v, self._reach, self._ball, self._clusters, self._cluster_centre,
-                                self._cluster_radius)
+                                self._cluster_radius, *line_starts(corners, proxy.spacing))
         self._sdf_centre, self._sdf_radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2  # its bounding ball
         self.stats, self.last_stats = CoherenceStats(), CoherenceStats()
         self.reset()

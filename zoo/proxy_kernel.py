@@ -240,6 +240,7 @@ def search_faces(call, mesh, grid, memory, out):
     bounds_lo, bounds_hi, lipschitz = call.bounds_lo, call.bounds_hi, grid.lipschitz
     faces, vertices, reach, ball = mesh.faces, mesh.vertices, mesh.reach, mesh.ball
     clusters, cluster_centre, cluster_radius = mesh.clusters, mesh.cluster_centre, mesh.cluster_radius
+    line_apex, line_count = mesh.line_apex, mesh.line_count
     last_bary, cluster_motion, cluster_key, face_key = memory.last_bary, memory.cluster_motion, memory.cluster_key, memory.face_key
     vertex_stamp, vertex_local, vertex_answer, missing = out.vertex_stamp, out.vertex_local, out.vertex_answer, out.missing
     counts = out.counts[0]
@@ -324,19 +325,31 @@ def search_faces(call, mesh, grid, memory, out):
             face_key[face] = value - gap + moved
         elif gap > stop:  # the search inside: from the last answer (warm) or the lowest of the pattern's points (cold)
             warm = math.isfinite(last_bary[face, 0])
+            n_line = 0
             if warm:
                 counts.warm += 1
                 first, last = 0, 1
             else:
                 counts.cold += 1
                 first, last = 0, pattern.shape[0]
+                n_line = line_count[face]  # a long face: its line's starts after the pattern's
             best, best_s = math.inf, 0
             best_b0 = best_b1 = best_b2 = best_gx = best_gy = best_gz = 0.0
-            for k in range(first, last):
+            for k in range(first, last + n_line):
                 if warm:
                     s0, s1, s2 = last_bary[face, 0], last_bary[face, 1], last_bary[face, 2]
-                else:
+                elif k < last:
                     s0, s1, s2 = pattern[k, 0], pattern[k, 1], pattern[k, 2]
+                else:  # zoo.proxy_search.line_points
+                    along = (k - last + 1) / (n_line + 1)
+                    s0 = s1 = s2 = along / 2
+                    apex = line_apex[face]
+                    if apex == 0:
+                        s0 = 1 - along
+                    elif apex == 1:
+                        s1 = 1 - along
+                    else:
+                        s2 = 1 - along
                 fs, sx, sy, sz, ss = read(s0 * t[0, 0] + s1 * t[1, 0] + s2 * t[2, 0], s0 * t[0, 1] + s1 * t[1, 1] + s2 * t[2, 1],
                                           s0 * t[0, 2] + s1 * t[1, 2] + s2 * t[2, 2], grid, missing, counts)
                 if ss == MISSING:

@@ -36,6 +36,8 @@ class SearchMesh(NamedTuple):
     clusters: np.ndarray  # (C, K) int64 faces of each cluster (-1 padding)
     cluster_centre: np.ndarray  # (C, 3)
     cluster_radius: np.ndarray  # (C,)
+    line_apex: np.ndarray  # (F,) int64 the corner a long face's line of starts runs from (line_starts)
+    line_count: np.ndarray  # (F,) int64 the starts on that line (0: a face no longer than LINE_START_CELLS cells)
 
 
 class SearchCall(NamedTuple):
@@ -98,11 +100,41 @@ class ProxyAnswers:
         return np.einsum("nv,nvc->nc", self.bary, self.tri)
 
 
+LINE_START_CELLS = 4  # a long face's cold search also starts every this many proxy cells along its length
+
+
+def line_starts(corners: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where a cold search starts along a long face, besides the pattern: on the line from the corner opposite its
+    shortest edge to that edge's midpoint (a sliver's length), every ``LINE_START_CELLS`` cells of ``spacing``. A
+    sliver 100 cells long (a gear's flank: 10 mm by 0.25) meets an SDF that varies along it, with minima the
+    pattern's seven starts miss. ``corners`` (F, 3, 3) -> apex (F,) int64 (the corner), count (F,) int64 (the
+    starts, at s = 1 .. count over count + 1 of the way, :func:`line_points`)."""
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)  # (F, 3): edge i joins corners i-1 and i
+    shortest = edges.argmin(axis=1)
+    apex = (shortest + 1) % 3
+    rows = np.arange(len(corners))
+    ends = corners[rows, shortest] + corners[rows, (shortest + 2) % 3]
+    length = np.linalg.norm(corners[rows, apex] - ends / 2, axis=1)
+    count = np.floor(length / (LINE_START_CELLS * spacing)).astype(np.int64)
+    return apex.astype(np.int64), count
+
+
+def line_points(apex: np.ndarray, count: int) -> np.ndarray:
+    """The barycentrics (W, count, 3) of :func:`line_starts`' points on faces whose line runs from corner ``apex``
+    (W,): (1 - s) at the apex, s / 2 at the others, s = 1 .. count over count + 1."""
+    s = np.arange(1, count + 1) / (count + 1)
+    points = np.empty((len(apex), count, 3))
+    points[:] = (s / 2)[None, :, None]
+    points[np.arange(len(apex)), :, apex] = 1 - s
+    return points
+
+
 def numpy_search(call: SearchCall, mesh: SearchMesh, proxy, memory: FaceMemory, stats: CoherenceStats) -> ProxyAnswers:
     """The faces whose proxy minimum is at most ``call.net``, with the proxy (a ``zoo.proxy.ProxySDF``) at their
     minima; ``memory.last_bary`` is read and updated (the held bounds are not used); ``stats`` counted."""
     faces, values, grads, status, tri = _near_faces(call, mesh, proxy, stats)
-    bary, values, grads, status = _search(call, proxy, memory, faces, tri, values, grads, status, stats)
+    bary, values, grads, status = _search(call, proxy, memory, faces, tri, values, grads, status, stats,
+                                          mesh.line_apex[faces], mesh.line_count[faces])
     return ProxyAnswers(faces, tri, bary, values, grads, status).take(np.flatnonzero(values <= call.net))
 
 
@@ -158,9 +190,10 @@ def counted_read(proxy, points: np.ndarray, stats: CoherenceStats):
 
 
 def _search(call: SearchCall, proxy, memory: FaceMemory, faces, tri, vertex_values, vertex_grads, vertex_status,
-            stats: CoherenceStats):
+            stats: CoherenceStats, line_apex, line_count):
     """Each face's minimum on the proxy, from the proxy at its vertices (values (S, 3), gradients (S, 3, 3), status
-    (S, 3)): bary (S, 3), values (S,), gradients (S, 3), status (S,) int8 there."""
+    (S, 3)), and its line of starts (``line_apex``, ``line_count`` (S,), :func:`line_starts`): bary (S, 3),
+    values (S,), gradients (S, 3), status (S,) int8 there."""
     s = len(faces)
     stats.candidates = s
     rows = np.arange(s)
@@ -172,15 +205,17 @@ def _search(call: SearchCall, proxy, memory: FaceMemory, faces, tri, vertex_valu
     open_ = np.flatnonzero((gap > call.stop) & (value - gap <= call.search))
     stats.screened = int(np.count_nonzero(value - gap > call.search))
     if open_.size:
-        _search_inside(call, proxy, memory, faces[open_], tri[open_], open_, bary, value, grad, state, stats)
+        _search_inside(call, proxy, memory, faces[open_], tri[open_], open_, bary, value, grad, state, stats,
+                       line_apex[open_], line_count[open_])
     return bary, value, grad, state
 
 
 def _search_inside(call: SearchCall, proxy, memory: FaceMemory, faces, tri, rows, bary, value, grad, state,
-                   stats: CoherenceStats) -> None:
+                   stats: CoherenceStats, line_apex, line_count) -> None:
     """The search inside the faces ``faces`` (W,) (``rows`` (W,) of the arrays ``bary``, ``value``, ``grad``,
     ``state``, which hold the lowest vertex's answer and are updated in place): from the last answer where the face
-    has one, else the lowest of the pattern's points, then up to ``call.search_steps`` descents."""
+    has one, else the lowest of the pattern's points and its line's (``line_apex``, ``line_count`` (W,)), then up
+    to ``call.search_steps`` descents."""
     w = len(faces)
     last = memory.last_bary[faces]  # (W, 3), NaN where none
     warm = np.isfinite(last[:, 0])
@@ -190,6 +225,12 @@ def _search_inside(call: SearchCall, proxy, memory: FaceMemory, faces, tri, rows
         if chosen.size:
             _lowest_start(proxy, tri[chosen], rows[chosen], np.broadcast_to(starts, (chosen.size,) + starts.shape[1:]),
                           bary, value, grad, state, stats)
+    cold = np.flatnonzero(~warm)
+    for count in np.unique(line_count[cold]):  # a long cold face: its line's starts too, lower ones kept
+        if count:
+            chosen = cold[line_count[cold] == count]
+            _lowest_start(proxy, tri[chosen], rows[chosen], line_points(line_apex[chosen], int(count)), bary, value,
+                          grad, state, stats)
     active = np.arange(w)
     for step in range(call.search_steps):
         if step == call.warm_steps:
@@ -241,4 +282,5 @@ def _descend(proxy, tri, bary, f0, g, stats):
     return (np.where(pick, end, mid), np.where(end_lower, f1, fm), np.where(pick, g1, gm), np.where(end_lower, s1, sm))
 
 
-__all__ = ["SearchMesh", "SearchCall", "FaceMemory", "ProxyAnswers", "numpy_search", "counted_read"]
+__all__ = ["SearchMesh", "SearchCall", "FaceMemory", "ProxyAnswers", "numpy_search", "counted_read", "line_starts",
+           "line_points", "LINE_START_CELLS"]
