@@ -355,6 +355,8 @@ def search_faces(call, mesh, grid, memory, out):
                 if ss == MISSING:
                     lost = True
                     break
+                if k >= last and ss != IN_BAND:  # out of band a read is a bound, not where the face is lowest
+                    continue
                 if fs < best:
                     best, best_s, best_b0, best_b1, best_b2, best_gx, best_gy, best_gz = fs, ss, s0, s1, s2, sx, sy, sz
             if lost:

@@ -230,7 +230,7 @@ def _search_inside(call: SearchCall, proxy, memory: FaceMemory, faces, tri, rows
         if count:
             chosen = cold[line_count[cold] == count]
             _lowest_start(proxy, tri[chosen], rows[chosen], line_points(line_apex[chosen], int(count)), bary, value,
-                          grad, state, stats)
+                          grad, state, stats, in_band_only=True)
     active = np.arange(w)
     for step in range(call.search_steps):
         if step == call.warm_steps:
@@ -248,12 +248,16 @@ def _search_inside(call: SearchCall, proxy, memory: FaceMemory, faces, tri, rows
     memory.last_bary[faces] = bary[rows]
 
 
-def _lowest_start(proxy, tri, rows, starts, bary, value, grad, state, stats) -> None:
+def _lowest_start(proxy, tri, rows, starts, bary, value, grad, state, stats, in_band_only: bool = False) -> None:
     """Read the proxy at the starts (W, K, 3) on the triangles (W, 3, 3), all in one read, and keep the lowest where
-    it is below the answer held in ``rows`` (W,) of ``bary``, ``value``, ``grad`` and ``state`` (updated in place)."""
+    it is below the answer held in ``rows`` (W,) of ``bary``, ``value``, ``grad`` and ``state`` (updated in place);
+    ``in_band_only``: of the starts read in the proxy's band (a read out of it is a bound, not where the face is
+    lowest)."""
     w, k = starts.shape[:2]
     f, g, status = counted_read(proxy, np.einsum("wkv,wvc->wkc", starts, tri).reshape(-1, 3), stats)
     f, g, status = f.reshape(w, k), g.reshape(w, k, 3), status.reshape(w, k)
+    if in_band_only:
+        f = np.where(status == IN_BAND, f, np.inf)
     best = f.argmin(axis=1)
     at = np.arange(w)
     lower = f[at, best] < value[rows]
