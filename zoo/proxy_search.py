@@ -37,7 +37,7 @@ class SearchMesh(NamedTuple):
     cluster_centre: np.ndarray  # (C, 3)
     cluster_radius: np.ndarray  # (C,)
     line_apex: np.ndarray  # (F,) int64 the corner a long face's line of starts runs from (line_starts)
-    line_count: np.ndarray  # (F,) int64 the starts on that line (0: a face no longer than LINE_START_CELLS cells)
+    line_count: np.ndarray  # (F,) int64 the starts on that line (0: a face shorter than LINE_START_CELLS cells)
 
 
 class SearchCall(NamedTuple):
