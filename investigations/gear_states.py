@@ -75,15 +75,21 @@ def deepest_contact(sim, state: dict) -> tuple[float, int]:
     return max(0.0, -float(contacts.depths[i])), int(contacts.triangles[i])
 
 
-def grid_depth(sim, state: dict, face: int, grid) -> float:
-    """The NeuralSDF's least over mesh face ``face`` at ``state``, on the barycentric ``grid`` (G, 3): penetration m."""
-    import torch
-
+def face_poses(sim, state: dict) -> tuple[np.ndarray, np.ndarray]:
+    """At ``state``: the pair's surface pose and its SDF body's pose (4, 4), world frame."""
     from zoo.sim.geoms import body_pose
 
     set_state(sim, state)
     pair = sim.world.pairs[0]
-    other, sdf_pose = pair.surface_pose(sim.data), body_pose(sim.data, pair.sdf_body.body)
+    return pair.surface_pose(sim.data), body_pose(sim.data, pair.sdf_body.body)
+
+
+def grid_depth(pair, poses: tuple[np.ndarray, np.ndarray], face: int, grid) -> float:
+    """The NeuralSDF's least over mesh face ``face`` of ``pair`` at ``poses`` (:func:`face_poses`), on the barycentric
+    ``grid`` (G, 3): penetration m."""
+    import torch
+
+    other, sdf_pose = poses
     corners = pair.vertices[pair.faces[face]] @ other[:3, :3].T + other[:3, 3]  # world
     local = (corners - sdf_pose[:3, 3]) @ sdf_pose[:3, :3]  # the SDF's frame
     with torch.no_grad():
@@ -110,7 +116,8 @@ def main(argv=None) -> None:
     rows, truth = [], []
     for k, state in enumerate(states):
         faces = sorted({found[path][k][1] for path in paths} - {-1})
-        on_face = {face: grid_depth(sim, state, face, grid) for face in faces}
+        poses = face_poses(sim, state) if faces else None
+        on_face = {face: grid_depth(sim.world.pairs[0], poses, face, grid) for face in faces}
         truth.append(max(on_face.values(), default=0.0))
         rows.append({"step": k, "truth_mm": 1e3 * truth[-1],
                      **{path: {"deepest_mm": 1e3 * found[path][k][0], "face": found[path][k][1],
