@@ -234,11 +234,10 @@ def install_voxel_part(sdf, resolution: int, lo, hi, samples) -> VoxelSDF:
     over the whole of ``sdf.bounds``; putting the part there first keeps everything else of the
     call as it is (the broad phase on ``sdf``, the solver on the grid).
     """
-    from zoo import collide as collide_module  # the function shadows the module on `zoo`
+    from zoo.collision import install_voxel_grid
 
-    module = sys.modules[collide_module.__module__]
     grid = VoxelSDF(sdf, resolution=samples, bounds=(lo, hi), padding=0.0)
-    module._voxel_cache[(id(sdf), (resolution,) * 3)] = (sdf, grid)
+    install_voxel_grid(sdf, resolution, grid)
     return grid
 
 

@@ -37,7 +37,6 @@ path's (and along the bolt, for bolt-nut), the scenario's check, and the collide
 from __future__ import annotations
 
 import argparse
-import functools
 import time
 
 import numpy as np
@@ -163,14 +162,14 @@ def surface_points(sdf, n: int, seed: int = 0) -> np.ndarray:
 
 
 def read_costs(model: str = "mugs", shape: str = "hoi4d_mug_0001", margin: float = 1e-3, repeats: int = 3000) -> dict:
-    """Microseconds a call of the proxy's numpy read (``read_numpy``, or ``_read`` before it) at 10 and 500 points,
+    """Microseconds a call of the proxy's numpy read (``read_numpy``) at 10 and 500 points,
     near the surface and uniform in the bounds, float32 and float64 (median of ``repeats`` calls)."""
     import zoo
     from zoo.proxy import IN_BAND, cached_proxy
 
     sdf = zoo.load(model).shape(shape)
     proxy = cached_proxy(sdf, margin=margin)
-    read = getattr(proxy, "read_numpy", None) or proxy._read
+    read = proxy.read_numpy
     lo, hi = (b.double().numpy() for b in sdf.bounds)
     kinds = {"near the surface": surface_points(sdf, 500),
              "uniform in the bounds": lo + (hi - lo) * np.random.default_rng(0).random((500, 3))}
@@ -326,10 +325,25 @@ def network_costs(repeats: int = 200) -> dict:
         for n in (1, 3, 10, 64, 256, 512, 1000):
             points = lo + torch.rand(n, 3, generator=torch.Generator().manual_seed(n)) * (hi - lo)
             taken = per_call_us(shape.value_and_grad, points, repeats) * n
-            by_hand = per_call_us(functools.partial(shape._value_and_grad_by_hand, n=1 << 20), points, repeats) * n
+            by_hand = per_call_us(torch_by_hand(shape.value_and_grad), points, repeats) * n
             rows[str(n)] = {"taken_us": taken, "torch_by_hand_us": by_hand, "taken_us_a_point": taken / n}
         out[shape_name] = rows
     return out
+
+
+def torch_by_hand(value_and_grad):
+    """``value_and_grad`` made to take torch's chain rule by hand at any number of points: the numpy network's
+    threshold (``zoo.neural.SMALL_BATCH``) set to 0 for the call."""
+    import zoo.neural
+
+    def call(points):
+        small_batch, zoo.neural.SMALL_BATCH = zoo.neural.SMALL_BATCH, 0
+        try:
+            return value_and_grad(points)
+        finally:
+            zoo.neural.SMALL_BATCH = small_batch
+
+    return call
 
 
 def main(argv: list[str] | None = None) -> None:

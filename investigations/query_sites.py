@@ -1,10 +1,10 @@
 """What a scenario's steps spend on NeuralSDF queries, by the code that asks: a profile, for docs/sim-bench.md.
 
-Runs a scenario of benches/sim_scenarios.py (its scene, control and default settings: amortized with
-coherence) and times every NeuralSDF query (values, values and gradients) with the two functions that
-asked for it (its call site). Prints per site the calls, points and milliseconds per step, and the
-collision time per step that the queries leave (bookkeeping: bounds, selection, the solvers' own
-arithmetic). The first ``--skip`` steps are not counted. One torch thread; the timers add a little.
+Runs a scenario of benches/sim_scenarios.py (its scene, control and default settings: the proxy, its
+NeuralSDF answering the contacts kept) and times every NeuralSDF query (values, values and gradients) with
+the two functions that asked for it (its call site). Prints per site the calls, points and milliseconds per
+step, and the collision time per step that the queries leave (bookkeeping: bounds, selection, the solvers'
+own arithmetic). The first ``--skip`` steps are not counted. One torch thread; the timers add a little.
 
     python -m investigations query_sites --scene mug-rack --steps 100 --out out/query-sites-mug-rack.json
 """
@@ -39,36 +39,36 @@ def call_site(depth: int = 2) -> str:
 
 @contextmanager
 def timed_queries():
-    """Within the block, every NeuralShape value and value-and-gradient query is counted: yields a dict
-    (kind, site) -> [calls, points, seconds], filled as queries run."""
+    """Within the block, every NeuralShape value and value-and-gradient query is counted (its public entry points:
+    ``__call__``, ``value_and_grad`` and the numpy ``value_and_grad_few``): yields a dict (kind, site) -> [calls,
+    points, seconds], filled as queries run."""
     from zoo.neural import NeuralShape
 
     sites = defaultdict(lambda: [0, 0, 0.0])
-    value, value_and_grad = NeuralShape._distance, NeuralShape._value_and_grad
+    originals = {name: getattr(NeuralShape, name) for name in ("__call__", "value_and_grad", "value_and_grad_few")}
+    kinds = {"__call__": "value", "value_and_grad": "value+grad", "value_and_grad_few": "value+grad"}
 
-    def record(kind, points, started):
-        entry = sites[(kind, call_site())]
-        entry[0] += 1
-        entry[1] += int(points.shape[0])
-        entry[2] += time.perf_counter() - started
+    def timed(name):
+        original, kind = originals[name], kinds[name]
 
-    def timed_value(self, points):
-        started = time.perf_counter()
-        out = value(self, points)
-        record("value", points, started)
-        return out
+        def wrapper(self, points, *args, **kwargs):
+            started = time.perf_counter()
+            out = original(self, points, *args, **kwargs)
+            entry = sites[(kind, call_site())]
+            entry[0] += 1
+            entry[1] += int(len(points))
+            entry[2] += time.perf_counter() - started
+            return out
 
-    def timed_value_and_grad(self, points, create_graph=False):
-        started = time.perf_counter()
-        out = value_and_grad(self, points, create_graph)
-        record("value+grad", points, started)
-        return out
+        return wrapper
 
-    NeuralShape._distance, NeuralShape._value_and_grad = timed_value, timed_value_and_grad
+    for name in originals:
+        setattr(NeuralShape, name, timed(name))
     try:
         yield sites
     finally:
-        NeuralShape._distance, NeuralShape._value_and_grad = value, value_and_grad
+        for name, original in originals.items():
+            setattr(NeuralShape, name, original)
 
 
 def profile(name: str, steps: int, skip: int) -> dict:

@@ -42,6 +42,23 @@ def test_no_module_imports_another_modules_private_names():
     assert not offenders, "give these a public name in their module:\n" + "\n".join(offenders)
 
 
+def test_investigations_and_benches_reach_no_private_attribute():
+    """Investigations and benches measure the package through its public names: no ``obj._name`` on anything but
+    their own ``self``/``cls`` (and ``sys._getframe``), so that a private rename cannot silently change what they
+    time or patch."""
+    offenders = []
+    for folder in ("investigations", "benches"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_bytes())):
+                if not (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")):
+                    continue
+                owner = node.value.id if isinstance(node.value, ast.Name) else None
+                if owner in ("self", "cls") or (owner, node.attr) == ("sys", "_getframe"):
+                    continue
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: .{node.attr}")
+    assert not offenders, "use (or make) a public name:\n" + "\n".join(offenders)
+
+
 def zoo_import_graph() -> dict[str, set[str]]:
     """{zoo module: the zoo modules it imports}, from every import statement in it (a function's own too: an import
     deferred to call time still ties the two modules together). ``zoo`` itself (the package's lazy names) is left

@@ -443,14 +443,22 @@ def voxel_of(sdf, resolution):
 
     if isinstance(sdf, VoxelSDF):
         return sdf  # already a grid: solving on a grid of a grid would only blur it
+    hit = _voxel_cache.get((id(sdf), resolution_per_axis(resolution)))
+    grid = VoxelSDF(sdf, resolution=resolution) if hit is None else hit[1]
+    install_voxel_grid(sdf, resolution, grid)  # re-inserted last: the dict's order is the recency order
+    return grid
+
+
+def install_voxel_grid(sdf, resolution, grid) -> None:
+    """Make ``grid`` (a ``VoxelSDF``) the cached grid of ``sdf`` at ``resolution``, in place of one built over the
+    whole of ``sdf.bounds`` on first use: for a caller that samples only the part of the grid it needs."""
+    from .voxel import resolution_per_axis
+
     key = (id(sdf), resolution_per_axis(resolution))
-    hit = _voxel_cache.pop(key, None)
-    if hit is None:
-        hit = (sdf, VoxelSDF(sdf, resolution=resolution))
-    _voxel_cache[key] = hit  # re-inserted last: the dict's order is the recency order
+    _voxel_cache.pop(key, None)
+    _voxel_cache[key] = (sdf, grid)  # the SDF held: its id cannot be reused while the entry lives
     while len(_voxel_cache) > _VOXEL_CACHE_SIZE:
         _voxel_cache.pop(next(iter(_voxel_cache)))
-    return hit[1]
 
 
 def clear_voxel_cache() -> None:
