@@ -15,6 +15,7 @@ its own face) or it misses (another path's face holds the truth, and this path r
 from __future__ import annotations
 
 import argparse
+from typing import NamedTuple
 
 import numpy as np
 
@@ -75,21 +76,28 @@ def deepest_contact(sim, state: dict) -> tuple[float, int]:
     return max(0.0, -float(contacts.depths[i])), int(contacts.triangles[i])
 
 
-def face_poses(sim, state: dict) -> tuple[np.ndarray, np.ndarray]:
-    """At ``state``: the pair's surface pose and its SDF body's pose (4, 4), world frame."""
+class FacePoses(NamedTuple):
+    """The pair's surface pose and its SDF body's pose (4, 4) at one state, world frame."""
+
+    surface: np.ndarray
+    sdf: np.ndarray
+
+
+def face_poses(sim, state: dict) -> FacePoses:
+    """The poses of the scene's first pair at ``state``."""
     from zoo.sim.geoms import body_pose
 
     set_state(sim, state)
     pair = sim.world.pairs[0]
-    return pair.surface_pose(sim.data), body_pose(sim.data, pair.sdf_body.body)
+    return FacePoses(pair.surface_pose(sim.data), body_pose(sim.data, pair.sdf_body.body))
 
 
-def grid_depth(pair, poses: tuple[np.ndarray, np.ndarray], face: int, grid) -> float:
+def grid_depth(pair, poses: FacePoses, face: int, grid) -> float:
     """The NeuralSDF's least over mesh face ``face`` of ``pair`` at ``poses`` (:func:`face_poses`), on the barycentric
     ``grid`` (G, 3): penetration m."""
     import torch
 
-    other, sdf_pose = poses
+    other, sdf_pose = poses.surface, poses.sdf
     corners = pair.vertices[pair.faces[face]] @ other[:3, :3].T + other[:3, 3]  # world
     local = (corners - sdf_pose[:3, 3]) @ sdf_pose[:3, :3]  # the SDF's frame
     with torch.no_grad():
