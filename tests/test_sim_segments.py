@@ -49,7 +49,8 @@ def test_segment_minima_match_dense_sampling_on_analytic_sdfs(shape):
     a, b = centres - half, centres + half
     reach = np.full(300, 0.02)
     counting = CountingSDF(sdf)
-    found = segment_minima(counting, a, b, reach, torch.float64)
+    search = segment_minima(counting, a, b, reach, torch.float64)
+    found = search.minima
     assert counting.calls == 1 + SEGMENT_STEPS
     least, _ = dense_minima(sdf, a, b)
     reached = np.flatnonzero(least <= reach)
@@ -61,6 +62,10 @@ def test_segment_minima_match_dense_sampling_on_analytic_sdfs(shape):
         f, g = sdf.value_and_grad(torch.as_tensor(found.points))
     np.testing.assert_allclose(found.values, f.numpy(), atol=1e-12)
     np.testing.assert_allclose(found.grads, g.numpy(), atol=1e-12)
+    # every segment out of reach has a floor: a lower bound of f along it, above its reach; the others none
+    out = np.setdiff1d(np.arange(300), found.owner)
+    assert np.all(search.floors[out] > reach[out]) and np.all(search.floors[out] <= least[out])
+    assert np.all(search.floors[np.unique(found.owner)] == -np.inf)
     spheres = found.owner < 5
     assert np.bincount(found.owner[spheres], minlength=5).tolist() == [1 if i in reached else 0 for i in range(5)]
     np.testing.assert_allclose(found.points[spheres], centres[found.owner[spheres]])
@@ -75,7 +80,7 @@ def test_segment_minima_match_dense_sampling_on_a_neural_sdf():
     a = lo + rng.uniform(size=(60, 3)) * (hi - lo)
     b = lo + rng.uniform(size=(60, 3)) * (hi - lo)
     b = a + (b - a) * (0.06 / np.linalg.norm(b - a, axis=1))[:, None]  # 6 cm axes
-    found = segment_minima(mug, a, b, np.full(60, 0.01), torch.float32)
+    found = segment_minima(mug, a, b, np.full(60, 0.01), torch.float32).minima
     least, _ = dense_minima(mug, a, b, torch.float32)
     reached = np.flatnonzero(least <= 0.01)
     assert len(reached) > 10 and set(reached) <= set(found.owner.tolist())
@@ -105,8 +110,8 @@ def test_a_lower_bound_drops_segments_before_the_sdf_is_asked_and_changes_no_min
             return torus(torch.as_tensor(p)).numpy() - 1e-3
 
     plain, bounded = CountingPoints(torus), CountingPoints(torus)
-    every = segment_minima(plain, a, b, reach, torch.float64)
-    culled = segment_minima(bounded, a, b, reach, torch.float64, lower_bound)
+    every = segment_minima(plain, a, b, reach, torch.float64).minima
+    culled = segment_minima(bounded, a, b, reach, torch.float64, lower_bound).minima
     assert bounded.points < plain.points / 2
     for field in ("points", "owner", "values", "grads"):
         np.testing.assert_array_equal(getattr(every, field), getattr(culled, field))
@@ -114,8 +119,8 @@ def test_a_lower_bound_drops_segments_before_the_sdf_is_asked_and_changes_no_min
 
 
 def test_no_segments_give_no_minima():
-    found = segment_minima(zoo.Sphere(0.05), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), torch.float64)
-    assert found.points.shape == (0, 3) and found.owner.shape == (0,)
+    search = segment_minima(zoo.Sphere(0.05), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), torch.float64)
+    assert search.minima.points.shape == (0, 3) and search.minima.owner.shape == (0,) and search.floors.shape == (0,)
 
 
 def test_segments_that_barely_moved_keep_their_answer_moved_to_first_order():
@@ -133,7 +138,7 @@ def test_segments_that_barely_moved_keep_their_answer_moved_to_first_order():
     reach = np.array([0.02])
 
     def pair(coherence):
-        return SimpleNamespace(sdf_body=SimpleNamespace(sdf=CountingSDF(torus)), last=None, coherence=coherence)
+        return SimpleNamespace(sdf_body=SimpleNamespace(sdf=CountingSDF(torus)), last=None, clearance=None, coherence=coherence)
 
     kept, plain = pair(True), pair(False)
     for p in (kept, plain):
@@ -143,10 +148,47 @@ def test_segments_that_barely_moved_keep_their_answer_moved_to_first_order():
     shift = 0.8 * REUSE_FRACTION * margin * np.array([0.6, -0.5, 0.4]) / np.sqrt(0.77)  # 0.8 of the reuse distance
     moved = _segment_answers([(kept, margin, None)], [(a + shift, b + shift)], reach, None)
     assert kept.sdf_body.sdf.calls == 1 + SEGMENT_STEPS  # no query
-    fresh = segment_minima(torus, (a + shift)[None], (b + shift)[None], reach, torch.float64)
+    fresh = segment_minima(torus, (a + shift)[None], (b + shift)[None], reach, torch.float64).minima
     np.testing.assert_allclose(moved.values.min(), fresh.values.min(), atol=1e-6)
     np.testing.assert_allclose(moved.points, first.points + shift, atol=1e-15)
     _segment_answers([(plain, margin, None)], [(a + shift, b + shift)], reach, None)
     assert plain.sdf_body.sdf.calls == 2 * (1 + SEGMENT_STEPS)  # no coherence: asked again
     _segment_answers([(kept, margin, None)], [(a + 2 * shift, b + 2 * shift)], reach, None)
     assert kept.sdf_body.sdf.calls == 2 * (1 + SEGMENT_STEPS)  # 1.6 reuse distances from where it was answered
+
+
+def test_a_segment_out_of_reach_is_passed_over_while_its_clearance_holds():
+    """A capsule pair with coherence whose segment the search found out of reach is not asked again while its floor,
+    less SEGMENT_LIPSCHITZ times how far the segment moved since, stays above its reach; past that (or with no
+    coherence) it is searched again. Every segment passed over is out of reach by brute force."""
+    from types import SimpleNamespace
+
+    from zoo.sim.pairs import _segment_answers
+    from zoo.sim.segments import SEGMENT_LIPSCHITZ
+
+    torus = zoo.Torus(0.05, 0.015)
+    margin = 1e-3
+    a, b = np.array([0.04, -0.01, 0.045]), np.array([0.06, 0.012, 0.043])  # above the tube, f about 3 cm
+    reach = np.array([0.012])
+
+    def pair(coherence):
+        return SimpleNamespace(sdf_body=SimpleNamespace(sdf=CountingSDF(torus)), last=None, clearance=None,
+                               coherence=coherence)
+
+    held, plain = pair(True), pair(False)
+    for p in (held, plain):
+        assert not len(_segment_answers([(p, margin, None)], [(a, b)], reach, None).points)
+    assert held.clearance is not None and plain.clearance is None
+    room = (held.clearance.floor - reach[0]) / SEGMENT_LIPSCHITZ  # how far it may move and stay out of reach
+    assert room > 1e-3
+    toward = np.array([0.0, 0.0, -1.0])  # straight down onto the tube
+    for fraction in (0.3, 0.9):
+        shift = fraction * room * toward
+        assert not len(_segment_answers([(held, margin, None)], [(a + shift, b + shift)], reach, None).points)
+        assert held.sdf_body.sdf.calls == 1  # passed over: the first search's sample query only
+        assert dense_minima(torus, (a + shift)[None], (b + shift)[None])[0][0] > reach[0]
+        _segment_answers([(plain, margin, None)], [(a + shift, b + shift)], reach, None)
+    assert plain.sdf_body.sdf.calls == 3  # no coherence: asked every time
+    shift = 1.1 * room * toward
+    _segment_answers([(held, margin, None)], [(a + shift, b + shift)], reach, None)
+    assert held.sdf_body.sdf.calls == 2  # beyond its room from where the floor was found: searched again

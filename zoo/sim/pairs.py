@@ -31,7 +31,7 @@ from ..sdf import query_dtype
 from .contacts import MERGE_CELL, REFINE_CELLS, refine_near, refine_to_size, refined_pieces
 from .flat_regions import FaceCover, merge_flat_regions
 from .geoms import ContactParameters, body_pose, cube_corners, geom_pose
-from .segments import SegmentAnswer, SegmentMinima, carried_minima, segment_minima
+from .segments import SegmentAnswer, SegmentClearance, SegmentMinima, carried_minima, segment_minima
 
 # contacts closer than this fraction of the SDF's smallest extent are one contact (FW-10 scatters the
 # copies of a vertex's contact by up to a tenth of the edge)
@@ -224,7 +224,8 @@ class SegmentPair(Pair):
     along z of its frame, answered in closed form (:func:`segment_contacts`); ``proxy``: the SDF's
     ``zoo.proxy.ProxySDF`` whose lower bound culls before the SDF is asked (None: none). With ``coherence``, a
     segment that moved less than ``REUSE_FRACTION`` of the margin relative to the SDF since the SDF answered it keeps
-    that answer (``last``), moved to first order along its normals, as a mesh pair's faces do."""
+    that answer (``last``), moved to first order along its normals, as a mesh pair's faces do; and one the search
+    found out of reach is passed over while the bound that showed it (``clearance``) still holds."""
 
     kind = "segment"
     radius: float
@@ -232,13 +233,14 @@ class SegmentPair(Pair):
     proxy: object = None
     coherence: bool = False
     last: SegmentAnswer | None = None
+    clearance: SegmentClearance | None = None
 
     @property
     def bounding_radius(self) -> float:
         return self.half_length + self.radius
 
     def reset(self) -> None:
-        self.last = None
+        self.last = self.clearance = None
 
     def collide(self, t_sdf, t_other, margin, closing=None):
         raise TypeError("a segment pair's contacts come from segment_contacts, every segment of its SDF body at once")
@@ -430,12 +432,15 @@ def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) ->
 
 
 def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> SegmentMinima:
-    """The points of least f along the pairs' segments (``ends``: (a, b) each, the SDF's frame): each kept answer
-    that still holds (:class:`SegmentPair`'s ``coherence``) carried, the others searched together
-    (:func:`zoo.sim.segments.segment_minima`) and kept for the next steps."""
+    """The points of least f along the pairs' segments (``ends``: (a, b) each, the SDF's frame): with
+    :class:`SegmentPair`'s ``coherence``, a segment whose clearance still holds passed over and each kept answer that
+    still holds carried; the others searched together (:func:`zoo.sim.segments.segment_minima`), what the search found
+    kept for the next steps."""
     sdf = pairs[0][0].sdf_body.sdf
     kept, asked = [], []
     for index, ((pair, margin, _), (a, b)) in enumerate(zip(pairs, ends)):
+        if pair.coherence and pair.clearance is not None and pair.clearance.holds(a, b, reach[index]):
+            continue  # out of reach still: no contact, no query
         last = pair.last
         reuse = last is not None and pair.coherence and last.moved(a, b) <= REUSE_FRACTION * margin
         (kept if reuse else asked).append(index)
@@ -446,13 +451,16 @@ def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> Segme
     dtype = query_dtype(sdf)
     lower_bound = None if proxy is None else (lambda p: proxy.read_numpy(p)[0] - proxy.error_bound)
     a, b = np.array([ends[i][0] for i in asked]), np.array([ends[i][1] for i in asked])
-    found = segment_minima(sdf, a, b, reach[asked], dtype, lower_bound)
+    search = segment_minima(sdf, a, b, reach[asked], dtype, lower_bound)
+    found = search.minima
     found.owner = np.asarray(asked, dtype=np.int64)[found.owner]
     for j, index in enumerate(asked):
         pair = pairs[index][0]
         rows = np.flatnonzero(found.owner == index)
         pair.last = (SegmentAnswer(a[j], b[j], found.params[rows], found.values[rows], found.grads[rows])
                      if pair.coherence and rows.size else None)
+        out_of_reach = pair.coherence and search.floors[j] > reach[index]
+        pair.clearance = SegmentClearance(a[j], b[j], float(search.floors[j])) if out_of_reach else None
     return SegmentMinima.concat([carried, found])
 
 

@@ -9,7 +9,10 @@ slopes): the cubic's minimum (exact where f is smooth) and where their tangents 
 
 Between searches, a segment that moved less than a reuse distance since the SDF answered it keeps that answer
 (:class:`SegmentAnswer`), its values moved to first order along their normals (:func:`carried_minima`), as a mesh
-pair's faces keep theirs (``zoo.sim.pairs`` decides which).
+pair's faces keep theirs; and a segment the search found out of reach keeps the lower bound of f along it that showed
+so (:class:`SegmentClearance`): f being Lipschitz, the bound less ``SEGMENT_LIPSCHITZ`` times how far the segment has
+moved since still holds, and while it stays above the reach the segment is passed over with no query at all (a
+robot's links beside an object it carries). ``zoo.sim.pairs`` decides which.
 """
 
 from __future__ import annotations
@@ -70,6 +73,32 @@ class SegmentAnswer:
         return max(math.dist(a, self.a), math.dist(b, self.b))
 
 
+@dataclass
+class SegmentClearance:
+    """A segment the search found out of reach: its ends ``a``, ``b`` (3,) then (the SDF's frame) and ``floor``, a
+    lower bound of f along it then (:attr:`SegmentSearch.floors`)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    floor: float
+
+    def holds(self, a: np.ndarray, b: np.ndarray, reach: float) -> bool:
+        """Whether f still stays above ``reach`` along the segment now that its ends are ``a``, ``b`` (3,): each of its
+        points moved at most the larger of its ends' moves (see :meth:`SegmentAnswer.moved`), and f at most
+        ``SEGMENT_LIPSCHITZ`` times that."""
+        return self.floor - SEGMENT_LIPSCHITZ * max(math.dist(a, self.a), math.dist(b, self.b)) > reach
+
+
+@dataclass
+class SegmentSearch:
+    """What :func:`segment_minima` found for segments (S of them): ``minima``, the points of least f of those within
+    reach, and ``floors`` (S,), per segment, a lower bound of f along it where it is out of reach (above its reach),
+    -inf where it is within."""
+
+    minima: SegmentMinima
+    floors: np.ndarray
+
+
 def carried_minima(answers: list[SegmentAnswer], a: np.ndarray, b: np.ndarray, owners: np.ndarray) -> SegmentMinima:
     """Segments' kept ``answers`` at their new ends ``a``, ``b`` (S, 3), each value moved to first order along its unit
     normal (the same points along the axis; the gradients kept), as rows of the segments ``owners`` (S,): all at once."""
@@ -88,7 +117,7 @@ def carried_minima(answers: list[SegmentAnswer], a: np.ndarray, b: np.ndarray, o
 
 
 def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: torch.dtype,
-                   lower_bound=None) -> SegmentMinima:
+                   lower_bound=None) -> SegmentSearch:
     """The points of the segments from ``a`` to ``b`` (S, 3) where ``sdf`` is least, all segments at once.
 
     Each segment is sampled at ``SEGMENT_SAMPLES`` points; a segment whose samples, less the Lipschitz bound times
@@ -98,23 +127,25 @@ def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: 
     face touches along its length: its ends hold it level). A segment of no length (a sphere) gives its one point.
     Queries ``sdf.value_and_grad`` in ``dtype``, 1 + ``SEGMENT_STEPS`` times. ``lower_bound``: a cheap lower bound
     of f (numpy points (N, 3) -> (N,), an SDF's proxy less its error) that drops the segments it keeps out of reach
-    before the SDF is asked at all.
+    before the SDF is asked at all. Returns the minima with, per segment, the lower bound of f along it that showed it
+    out of reach (:class:`SegmentSearch`).
     """
     axis = b - a  # (S, 3)
     lengths = np.linalg.norm(axis, axis=1)
     spacing = lengths / (SEGMENT_SAMPLES - 1)
     t = np.where(lengths[:, None] > 0, np.linspace(0.0, 1.0, SEGMENT_SAMPLES)[None], 0.0)  # (S, T): a sphere's at its centre
+    floors = np.full(len(a), -np.inf)
     alive = np.arange(len(a))
     if lower_bound is not None and len(a):
         bounds = lower_bound((a[:, None] + t[..., None] * axis[:, None]).reshape(-1, 3)).reshape(t.shape)
-        alive = _within_reach(bounds, spacing, reach)
+        alive = _within_reach(bounds, spacing, reach, floors)
     if not len(alive):
-        return SegmentMinima.empty()
+        return SegmentSearch(SegmentMinima.empty(), floors)
     values, slopes, grads = _along(sdf, a[alive], axis[alive], t[alive], dtype)
-    near = _within_reach(values, spacing[alive], reach[alive])
+    near = _within_reach(values, spacing[alive], reach[alive], floors, alive)
     alive = alive[near]
     if not len(alive):
-        return SegmentMinima.empty()
+        return SegmentSearch(SegmentMinima.empty(), floors)
     a, axis, t, values, slopes, grads = a[alive], axis[alive], t[alive], values[near], slopes[near], grads[near]
     rows = np.arange(len(alive))
     best = np.argmin(values, axis=1)
@@ -136,18 +167,23 @@ def segment_minima(sdf, a: np.ndarray, b: np.ndarray, reach: np.ndarray, dtype: 
     ends = (0, SEGMENT_SAMPLES - 1)
     params = np.stack([t[:, 0], low_t, t[:, -1]], axis=1)  # (A, 3): an end, the minimum, the other end
     keep = (np.repeat(~sphere, 3) | np.tile([False, True, False], len(alive)))  # a sphere: its centre once
-    return SegmentMinima(
+    return SegmentSearch(SegmentMinima(
         points=(a[:, None] + params[..., None] * axis[:, None]).reshape(-1, 3)[keep],
         owner=np.repeat(alive, 3)[keep],
         params=params.reshape(-1)[keep],
         values=np.stack([values[:, ends[0]], low_f, values[:, ends[1]]], axis=1).reshape(-1)[keep],
-        grads=np.stack([grads[:, ends[0]], low_g, grads[:, ends[1]]], axis=1).reshape(-1, 3)[keep])
+        grads=np.stack([grads[:, ends[0]], low_g, grads[:, ends[1]]], axis=1).reshape(-1, 3)[keep]), floors)
 
 
-def _within_reach(values: np.ndarray, spacing: np.ndarray, reach: np.ndarray) -> np.ndarray:
-    """The segments (indices (K,)) whose samples' values (S, T) (or lower bounds), less the Lipschitz bound times half
-    their ``spacing`` (S,), come within their ``reach`` (S,): between two samples f can dip that much, no more."""
-    return np.nonzero(values.min(axis=1) - SEGMENT_LIPSCHITZ * spacing / 2 <= reach)[0]
+def _within_reach(values: np.ndarray, spacing: np.ndarray, reach: np.ndarray, floors: np.ndarray,
+                  rows: np.ndarray | None = None) -> np.ndarray:
+    """The segments (indices (K,) into ``values``) whose samples' values (S, T) (or lower bounds), less the Lipschitz
+    bound times half their ``spacing`` (S,), come within their ``reach`` (S,): between two samples f can dip that
+    much, no more. The others' such bound is written into ``floors`` at their ``rows`` (S,) (default: 0..S-1)."""
+    least = values.min(axis=1) - SEGMENT_LIPSCHITZ * spacing / 2
+    within = least <= reach
+    floors[np.arange(len(least)) if rows is None else rows] = np.where(within, -np.inf, least)
+    return np.nonzero(within)[0]
 
 
 def _narrowed(t: np.ndarray, f: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
