@@ -142,18 +142,18 @@ def test_segments_that_barely_moved_keep_their_answer_moved_to_first_order():
 
     kept, plain = pair(True), pair(False)
     for p in (kept, plain):
-        first = _segment_answers([(p, margin, None)], [(a, b)], reach, None)
+        first = _segment_answers([(p, margin, None)], a[None], b[None], reach, None)
         assert p.sdf_body.sdf.calls == 1 + SEGMENT_STEPS and len(first.points)
         np.testing.assert_allclose(first.points, a + first.params[:, None] * (b - a), atol=1e-15)
     shift = 0.8 * REUSE_FRACTION * margin * np.array([0.6, -0.5, 0.4]) / np.sqrt(0.77)  # 0.8 of the reuse distance
-    moved = _segment_answers([(kept, margin, None)], [(a + shift, b + shift)], reach, None)
+    moved = _segment_answers([(kept, margin, None)], (a + shift)[None], (b + shift)[None], reach, None)
     assert kept.sdf_body.sdf.calls == 1 + SEGMENT_STEPS  # no query
     fresh = segment_minima(torus, (a + shift)[None], (b + shift)[None], reach, torch.float64).minima
     np.testing.assert_allclose(moved.values.min(), fresh.values.min(), atol=1e-6)
     np.testing.assert_allclose(moved.points, first.points + shift, atol=1e-15)
-    _segment_answers([(plain, margin, None)], [(a + shift, b + shift)], reach, None)
+    _segment_answers([(plain, margin, None)], (a + shift)[None], (b + shift)[None], reach, None)
     assert plain.sdf_body.sdf.calls == 2 * (1 + SEGMENT_STEPS)  # no coherence: asked again
-    _segment_answers([(kept, margin, None)], [(a + 2 * shift, b + 2 * shift)], reach, None)
+    _segment_answers([(kept, margin, None)], (a + 2 * shift)[None], (b + 2 * shift)[None], reach, None)
     assert kept.sdf_body.sdf.calls == 2 * (1 + SEGMENT_STEPS)  # 1.6 reuse distances from where it was answered
 
 
@@ -177,18 +177,18 @@ def test_a_segment_out_of_reach_is_passed_over_while_its_clearance_holds():
 
     held, plain = pair(True), pair(False)
     for p in (held, plain):
-        assert not len(_segment_answers([(p, margin, None)], [(a, b)], reach, None).points)
+        assert not len(_segment_answers([(p, margin, None)], a[None], b[None], reach, None).points)
     assert held.clearance is not None and plain.clearance is None
     room = (held.clearance.floor - reach[0]) / SEGMENT_LIPSCHITZ  # how far it may move and stay out of reach
     assert room > 1e-3
     toward = np.array([0.0, 0.0, -1.0])  # straight down onto the tube
     for fraction in (0.3, 0.9):
         shift = fraction * room * toward
-        assert not len(_segment_answers([(held, margin, None)], [(a + shift, b + shift)], reach, None).points)
+        assert not len(_segment_answers([(held, margin, None)], (a + shift)[None], (b + shift)[None], reach, None).points)
         assert held.sdf_body.sdf.calls == 1  # passed over: the first search's sample query only
         assert dense_minima(torus, (a + shift)[None], (b + shift)[None])[0][0] > reach[0]
-        _segment_answers([(plain, margin, None)], [(a + shift, b + shift)], reach, None)
+        _segment_answers([(plain, margin, None)], (a + shift)[None], (b + shift)[None], reach, None)
     assert plain.sdf_body.sdf.calls == 3  # no coherence: asked every time
     shift = 1.1 * room * toward
-    _segment_answers([(held, margin, None)], [(a + shift, b + shift)], reach, None)
+    _segment_answers([(held, margin, None)], (a + shift)[None], (b + shift)[None], reach, None)
     assert held.sdf_body.sdf.calls == 2  # beyond its room from where the floor was found: searched again

@@ -403,54 +403,48 @@ def segment_contacts(near: list[tuple[SegmentPair, float, np.ndarray]], data) ->
     for pairs in by_body.values():
         sdf_body, proxy = pairs[0][0].sdf_body, pairs[0][0].proxy
         t_sdf = body_pose(data, sdf_body.body)
-        sdf_from_world = invert_pose(t_sdf)
-        ends = []
-        for pair, _, t_geom in pairs:
-            local = sdf_from_world @ t_geom
-            axis = local[:3, 2] * pair.half_length
-            ends.append((local[:3, 3] - axis, local[:3, 3] + axis))
+        local = invert_pose(t_sdf) @ np.stack([t_geom for _, _, t_geom in pairs])  # (P, 4, 4): each geom in the SDF's frame
+        axis = local[:, :3, 2] * np.array([pair.half_length for pair, _, _ in pairs])[:, None]
         radii = np.array([pair.radius for pair, _, _ in pairs])
         margins = np.array([margin for _, margin, _ in pairs])
-        minima = _segment_answers(pairs, ends, radii + margins, proxy)
-        if not len(minima.points):
+        minima = _segment_answers(pairs, local[:, :3, 3] - axis, local[:, :3, 3] + axis, radii + margins, proxy)
+        rows = np.flatnonzero(minima.values - radii[minima.owner] <= margins[minima.owner])
+        if not len(rows):
             continue
-        centres, owner, values, grads = minima.points, minima.owner, minima.values, minima.grads
-        normals = unit_rows(grads)
-        depths = values - radii[owner]
+        rows = rows[np.argsort(minima.owner[rows], kind="stable")]  # each pair's rows together, in their order
+        owner, normals = minima.owner[rows], unit_rows(minima.grads[rows])
+        depths = minima.values[rows] - radii[owner]
+        points = minima.points[rows] - radii[owner][:, None] * normals  # each point deepest in the SDF
         rotation, origin = t_sdf[:3, :3], t_sdf[:3, 3]
-        for index, (pair, margin, _) in enumerate(pairs):
-            rows = np.nonzero((owner == index) & (depths <= margin))[0]
-            if not len(rows):
-                continue
-            points = centres[rows] - pair.radius * normals[rows]  # its point deepest in the SDF
-            normals_world = normals[rows] @ rotation.T
-            k = len(rows)
-            found[id(pair)] = (ContactArrays(points @ rotation.T + origin, depths[rows], normals_world,
-                                             np.full(k, -1, dtype=np.int64), np.zeros((k, 3)), n_triangles=0,
-                                             n_candidates=k, method="closed-form"), normals_world)
+        points, normals = points @ rotation.T + origin, normals @ rotation.T
+        indices, starts = np.unique(owner, return_index=True)
+        for index, start, stop in zip(indices, starts, [*starts[1:], len(rows)]):
+            k = stop - start
+            found[id(pairs[index][0])] = (ContactArrays(points[start:stop], depths[start:stop], normals[start:stop],
+                                                        np.full(k, -1, dtype=np.int64), np.zeros((k, 3)), n_triangles=0,
+                                                        n_candidates=k, method="closed-form"), normals[start:stop])
     return found
 
 
-def _segment_answers(pairs: list, ends: list, reach: np.ndarray, proxy) -> SegmentMinima:
-    """The points of least f along the pairs' segments (``ends``: (a, b) each, the SDF's frame): with
+def _segment_answers(pairs: list, a: np.ndarray, b: np.ndarray, reach: np.ndarray, proxy) -> SegmentMinima:
+    """The points of least f along the pairs' segments (from ``a`` to ``b`` (P, 3), the SDF's frame): with
     :class:`SegmentPair`'s ``coherence``, a segment whose clearance still holds passed over and each kept answer that
     still holds carried; the others searched together (:func:`zoo.sim.segments.segment_minima`), what the search found
     kept for the next steps."""
     sdf = pairs[0][0].sdf_body.sdf
     kept, asked = [], []
-    for index, ((pair, margin, _), (a, b)) in enumerate(zip(pairs, ends)):
-        if pair.coherence and pair.clearance is not None and pair.clearance.holds(a, b, reach[index]):
+    for index, (pair, margin, _) in enumerate(pairs):
+        if pair.coherence and pair.clearance is not None and pair.clearance.holds(a[index], b[index], reach[index]):
             continue  # out of reach still: no contact, no query
         last = pair.last
-        reuse = last is not None and pair.coherence and last.moved(a, b) <= REUSE_FRACTION * margin
+        reuse = last is not None and pair.coherence and last.moved(a[index], b[index]) <= REUSE_FRACTION * margin
         (kept if reuse else asked).append(index)
-    carried = carried_minima([pairs[i][0].last for i in kept], np.array([ends[i][0] for i in kept]).reshape(-1, 3),
-                             np.array([ends[i][1] for i in kept]).reshape(-1, 3), np.asarray(kept, dtype=np.int64))
+    carried = carried_minima([pairs[i][0].last for i in kept], a[kept], b[kept], np.asarray(kept, dtype=np.int64))
     if not asked:
         return carried
     dtype = query_dtype(sdf)
     lower_bound = None if proxy is None else (lambda p: proxy.read_numpy(p)[0] - proxy.error_bound)
-    a, b = np.array([ends[i][0] for i in asked]), np.array([ends[i][1] for i in asked])
+    a, b = a[asked], b[asked]
     search = segment_minima(sdf, a, b, reach[asked], dtype, lower_bound)
     found = search.minima
     found.owner = np.asarray(asked, dtype=np.int64)[found.owner]

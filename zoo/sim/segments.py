@@ -108,7 +108,8 @@ def carried_minima(answers: list[SegmentAnswer], a: np.ndarray, b: np.ndarray, o
     params = np.concatenate([answer.params for answer in answers])
     values = np.concatenate([answer.values for answer in answers])
     grads = np.concatenate([answer.grads for answer in answers])
-    then = np.repeat(np.stack([np.stack([answer.a, answer.b, answer.b]) for answer in answers]), counts, axis=0)
+    then_a, then_b = np.array([answer.a for answer in answers]), np.array([answer.b for answer in answers])
+    then = np.repeat(np.stack([then_a, then_b, then_b], axis=1), counts, axis=0)
     now = np.repeat(np.stack([a, b, b], axis=1), counts, axis=0)  # each segment as a flat triangle a, b, b
     bary = np.stack([1.0 - params, params, np.zeros(len(params))], axis=1)
     values = moved_along_normal(values, unit_rows(grads), now, then, bary)
