@@ -147,7 +147,8 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
 def test_compiled_network_for_one_to_three_points_is_the_numpy_network(smooth_beta, fourier_levels, dtype):
     """zoo.neural_kernel's compiled call against NumpyNetwork's numpy operations at the same 1 to COMPILED_POINTS
     points (on code positions, near them, far out, and where the activations saturate): the same values and gradients up
-    to the dtype's rounding of sums taken in another order."""
+    to the dtype's rounding of sums taken in another order; and at source-frame points, the similarity applied and
+    undone in the call, numpy's answers through the same similarity."""
     config = dataclasses.replace(SMALL, hidden=(64, 64, 64), smooth_beta=smooth_beta, fourier_levels=fourier_levels)
     m = NeuralSDF(config, 1, torch.Generator().manual_seed(5))
     with torch.no_grad():
@@ -158,14 +159,26 @@ def test_compiled_network_for_one_to_three_points_is_the_numpy_network(smooth_be
     points = np.concatenate([m.positions[0, :2].detach().numpy() + [[0, 0, 0], [1e-5, 0, 0]],
                              rng.uniform(-0.6, 0.6, (30, 3)), rng.uniform(-3, 3, (4, 3))]).astype(dtype)
     tol = 2e-5 if dtype == np.float32 else 1e-9  # float64: a point 1e-5 from a code sums terms of 1e25
+    identity = (dtype(1.0), np.eye(3, dtype=dtype), np.zeros(3, dtype=dtype))
+    turn = np.radians(30.0)
+    similarity = (dtype(0.8), np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]],
+                                       dtype=dtype), np.array([0.1, -0.2, 0.05], dtype=dtype))
     for start in range(len(points)):
         x = points[start:start + 1 + start % COMPILED_POINTS]
-        values, grads = net.value_and_grad(x)
+        values, grads = net.value_and_grad(x.astype(np.float64), *identity)
         ref_values, ref_grads = net._numpy_value_and_grad(x)
         assert values.dtype == grads.dtype == dtype and values.shape == (len(x),) and grads.shape == (len(x), 3)
         scale = 1.0 + np.abs(ref_values).max()
         np.testing.assert_allclose(values, ref_values, rtol=0, atol=tol * scale)
         np.testing.assert_allclose(grads, ref_grads, rtol=0, atol=tol * (1.0 + np.abs(ref_grads).max()))
+        if start >= 2:  # source-frame points, away from the codes: the call applies the similarity and undoes it
+            s, r, t = similarity
+            source = np.random.default_rng(start).uniform(-0.6, 0.6, (len(x), 3))
+            values, grads = net.value_and_grad(source, s, r, t)
+            ref_values, ref_grads = net._numpy_value_and_grad(s * source.astype(dtype) @ r.T + t)
+            ref_values, ref_grads = ref_values / s, ref_grads @ r
+            np.testing.assert_allclose(values, ref_values, rtol=0, atol=tol * (1.0 + np.abs(ref_values).max()))
+            np.testing.assert_allclose(grads, ref_grads, rtol=0, atol=tol * (1.0 + np.abs(ref_grads).max()))
 
 
 def test_dtypes_are_kept_and_bad_input_rejected():

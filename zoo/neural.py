@@ -570,9 +570,7 @@ class NeuralShape(SDFBase):
         network = self._numpy_network(dtype)
         if network is None:
             return None
-        s, r, t = self._similarity_numpy(network.dtype)
-        values, grads = network.value_and_grad(s * points.astype(network.dtype, copy=False) @ r.T + t)
-        return values / s, grads @ r  # the source frame's gradient: R^T grad_n (the scale cancels)
+        return network.value_and_grad(points, *self._similarity_numpy(network.dtype))
 
     def _numpy_network(self, dtype: torch.dtype) -> NumpyNetwork | None:
         """:class:`zoo.neural_numpy.NumpyNetwork` of this shape in ``dtype`` (built once, and again when the decoder's

@@ -2,11 +2,11 @@
 most often (the answers and the polishing step of a contact or two).
 
 :class:`zoo.neural_numpy.NumpyNetwork` makes some 60 numpy calls for a query whatever its size; at one to a few
-points their per-call cost is most of its time. Here the same operations (the code cloud's features, the decoder's
-layers keeping each activation's slope, the chain rule back through both) are one compiled loop over the points (numba,
-``cache=True``), each weight row read once for all points. Its arithmetic is not numpy's BLAS: from a few points on
+points their per-call cost is most of its time. Here the same operations (the shape's similarity into the normalised
+frame and back, the code cloud's features, the decoder's layers keeping each activation's slope, the chain rule back
+through both) are one compiled loop over the points (numba, ``cache=True``), each weight row read once for all points. Its arithmetic is not numpy's BLAS: from a few points on
 the numpy form is faster, and ``NumpyNetwork`` hands this only ``COMPILED_POINTS`` points at most. Answers agree with
-the numpy form's up to rounding (tests/test_fast_paths.py).
+the numpy form's up to rounding (tests/test_neural.py).
 
 numba is imported here only: ``import zoo`` does not load it.
 """
@@ -50,13 +50,35 @@ FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def value_and_grad(x, net):
-    """Distances (P,) and gradients (P, 3) at normalised-frame points ``x`` (P, 3) of ``net``'s dtype (``net`` a
-    :class:`NetworkArrays`; :meth:`zoo.neural_numpy.NumpyNetwork.value_and_grad`'s answers)."""
+def value_and_grad(points, scale, rotation, shift, net):
+    """Distances (P,) and gradients (P, 3) at source-frame points ``points`` (P, 3), float64: the network ``net`` (a
+    :class:`NetworkArrays`) at the normalised points ``scale * points @ rotation.T + shift`` in ``rotation``'s dtype
+    (``net``'s), the distances over ``scale`` and the gradients turned back (R^T g; the scale cancels):
+    :meth:`zoo.neural_numpy.NumpyNetwork.value_and_grad`'s answers. The similarity is in the compiled call: at a
+    point or two, its few numpy operations would cost as much as the network."""
+    x = _normalised(points, scale, rotation, shift)
     r, sums, inputs = _features(x, net)
     values, slopes = _decoder(inputs, net)
     grad_in = _chain_rule(slopes, net, inputs.shape[1])
-    return values, _grad_x(x, inputs, grad_in, r, sums, net)
+    grads = _grad_x(x, inputs, grad_in, r, sums, net)
+    source_grads = np.empty_like(grads)
+    for p in range(len(values)):
+        values[p] /= scale
+        for b in range(3):
+            source_grads[p, b] = grads[p, 0] * rotation[0, b] + grads[p, 1] * rotation[1, b] + grads[p, 2] * rotation[2, b]
+    return values, source_grads
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _normalised(points, scale, rotation, shift):
+    """``scale * points @ rotation.T + shift`` (P, 3), the points cast to ``rotation``'s dtype first, as numpy does."""
+    dt = rotation.dtype.type
+    x = np.empty((points.shape[0], 3), rotation.dtype)
+    for p in range(points.shape[0]):
+        p0, p1, p2 = scale * dt(points[p, 0]), scale * dt(points[p, 1]), scale * dt(points[p, 2])
+        for a in range(3):
+            x[p, a] = p0 * rotation[a, 0] + p1 * rotation[a, 1] + p2 * rotation[a, 2] + shift[a]
+    return x
 
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")

@@ -46,14 +46,19 @@ class NumpyNetwork:
         self.frequencies = (np.pi * 2.0 ** np.arange(self.levels)).astype(dtype)
         self._kernel_arrays = None
 
-    def value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distances (P,) and gradients (P, 3) at normalised-frame points ``x`` (P, 3) of this network's dtype: at
-        most ``COMPILED_POINTS`` points in one compiled call (:mod:`zoo.neural_kernel`), more in numpy."""
-        if len(x) <= COMPILED_POINTS:
+    def value_and_grad(self, points: np.ndarray, scale, rotation: np.ndarray, shift: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (P,) and gradients (P, 3), in this network's dtype, at source-frame points ``points`` (P, 3): the
+        network at ``scale * points @ rotation.T + shift`` (a shape's similarity in this dtype: a scalar, (3, 3),
+        (3,)), the distances over the scale and the gradients in the source frame (R^T g). At most
+        ``COMPILED_POINTS`` points in one compiled call, similarity included (:mod:`zoo.neural_kernel`), more in
+        numpy."""
+        if len(points) <= COMPILED_POINTS:
             from .neural_kernel import value_and_grad
 
-            return value_and_grad(x, self._arrays())
-        return self._numpy_value_and_grad(x)
+            return value_and_grad(np.asarray(points, dtype=np.float64), scale, rotation, shift, self._arrays())
+        values, grads = self._numpy_value_and_grad(scale * points.astype(self.dtype, copy=False) @ rotation.T + shift)
+        return values / scale, grads @ rotation  # the source frame's gradient: R^T grad_n (the scale cancels)
 
     def _arrays(self):
         """This network as :class:`zoo.neural_kernel.NetworkArrays` (made at the first compiled call)."""
