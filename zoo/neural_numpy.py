@@ -56,7 +56,9 @@ class NumpyNetwork:
         if len(points) <= COMPILED_POINTS:
             from .neural_kernel import value_and_grad
 
-            return value_and_grad(np.asarray(points, dtype=np.float64), scale, rotation, shift, self._arrays())
+            # a writable C-ordered float64 copy: the one array type the call is compiled for (at a simulation's
+            # attach), whatever view a caller passes
+            return value_and_grad(np.array(points, dtype=np.float64, order="C"), scale, rotation, shift, self._arrays())
         values, grads = self._numpy_value_and_grad(scale * points.astype(self.dtype, copy=False) @ rotation.T + shift)
         return values / scale, grads @ rotation  # the source frame's gradient: R^T grad_n (the scale cancels)
 
