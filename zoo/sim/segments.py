@@ -68,9 +68,15 @@ class SegmentAnswer:
     grads: np.ndarray
 
     def moved(self, a: np.ndarray, b: np.ndarray) -> float:
-        """How far (m) any point of the segment moved since, now that its ends are ``a``, ``b`` (3,): a point at t moves
-        by (1 - t) da + t db, at most the larger of the two."""
-        return max(math.dist(a, self.a), math.dist(b, self.b))
+        """How far (m) any point of the segment moved since, now that its ends are ``a``, ``b`` (3,)
+        (:func:`segment_moved`)."""
+        return segment_moved(self.a, self.b, a, b)
+
+
+def segment_moved(a0: np.ndarray, b0: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """How far (m) any point of a segment moved when its ends went from ``a0``, ``b0`` to ``a``, ``b`` (3,): a point at
+    t moves by (1 - t) da + t db, at most the larger of the two."""
+    return max(math.dist(a, a0), math.dist(b, b0))
 
 
 @dataclass
@@ -84,9 +90,8 @@ class SegmentClearance:
 
     def holds(self, a: np.ndarray, b: np.ndarray, reach: float) -> bool:
         """Whether f still stays above ``reach`` along the segment now that its ends are ``a``, ``b`` (3,): each of its
-        points moved at most the larger of its ends' moves (see :meth:`SegmentAnswer.moved`), and f at most
-        ``SEGMENT_LIPSCHITZ`` times that."""
-        return self.floor - SEGMENT_LIPSCHITZ * max(math.dist(a, self.a), math.dist(b, self.b)) > reach
+        points moved at most :func:`segment_moved`, and f at most ``SEGMENT_LIPSCHITZ`` times that."""
+        return self.floor - SEGMENT_LIPSCHITZ * segment_moved(self.a, self.b, a, b) > reach
 
 
 @dataclass
