@@ -270,15 +270,15 @@ def test_near_deepest_per_cell_against_a_dictionary():
                 assert len(expected) > len(least) if band else len(expected) >= len(least)
 
 
-@pytest.mark.parametrize("band_bounds, slack", [(0, 0.0), (2, 0.0), (0, 2e-4)])
-def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use(band_bounds, slack):
+@pytest.mark.parametrize("band_bounds, slack, near_miss", [(0, 0.0, 0.0), (2, 0.0, 0.0), (0, 2e-4, 0.0), (0, 0.0, 2e-4)])
+def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use(band_bounds, slack, near_miss):
     """A deferred collider with a Thinning against the same collider without: a sphere sliding, turning and sinking
     over a plane of long thin faces (contacts that face their faces and contacts that do not, separated contacts the
     bodies close in time and ones they do not) gives, at every step, per cell of the world's grid the contacts
     within the band (none, or twice the proxy's error bound) of the deepest of those that the numpy filters
-    (tests/naive_filters.py) let through, each depth taken at its least (less a slack: none, or 0.2 mm), as a
-    dictionary picks them from every contact; and the reduction a simulation makes keeps the same contacts from
-    either."""
+    (tests/naive_filters.py) let through, each depth taken at its least (less a slack: none, or 0.2 mm), and apart
+    from them, the same of the near misses (those let through only with 0.2 mm more), as a dictionary picks them
+    from every contact; and the reduction a simulation makes keeps the same contacts from either."""
     from naive_filters import closing_in_time, facing_faces
 
     from zoo.contact_filters import GRAZING_COS, SEPARATED_COS, Closing
@@ -297,36 +297,44 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
     sphere_motion = (np.array([0.01, 0.02, -0.3]), np.array([0.5, -1.0, 2.0]))  # (velocity, angular velocity)
     band = band_bounds * proxy.error_bound
     every, thinned = (ProxyCollider(sphere, mesh, proxy, margin=2e-3, method="fw", deferred=True, thin=t)
-                      for t in (None, Thinning(cell, GRAZING_COS, SEPARATED_COS, band=band, slack=slack)))
+                      for t in (None, Thinning(cell, GRAZING_COS, SEPARATED_COS, band=band, slack=slack,
+                                               near_miss=near_miss)))
     # the mesh moved off the cells' faces (its vertices on x, y, z = 0: rounding could put a point either side)
     off = np.array([0.3, 0.2, 0.4]) * cell
     lift = pose(None, off)
-    compared = left_out = beyond_deepest = by_slack = 0
+    compared = left_out = beyond_deepest = by_slack = near_kept = 0
     for step in range(10):
         sdf_pose = pose(rotation((0.3, 0.2, 1), 0.05 * step), off + (4e-4 * step, -2e-4 * step, 0.0495 - 1e-4 * step))
         origin = sdf_pose[:3, 3]
         v, w = sphere_motion
         thinned.thin = Thinning(cell, GRAZING_COS, SEPARATED_COS, closing=Closing(v - np.cross(w, origin), w, seconds), band=band,
-                                slack=slack)
+                                slack=slack, near_miss=near_miss)
         a, b = every(sdf_pose, lift), thinned(sdf_pose, lift)
         points, depths, contact_normals = (x.double().numpy() for x in (a.points, a.depths, a.normals))
         face_world = normals[a.triangles.numpy()]  # the mesh is only moved
-        usable = facing_faces(contact_normals, face_world, depths, slack) & closing_in_time(
-            points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)), seconds,
-            slack)
-        least = {}
-        for i in np.flatnonzero(usable):
-            key = tuple(np.floor(points[i] / cell).astype(np.int64).tolist())
-            least[key] = min(least.get(key, np.inf), depths[i])
-        expected = [i for i in np.flatnonzero(usable)
-                    if depths[i] <= least[tuple(np.floor(points[i] / cell).astype(np.int64).tolist())] + band]
+
+        def usable_within(known):
+            return facing_faces(contact_normals, face_world, depths, known) & closing_in_time(
+                points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)),
+                seconds, known)
+
+        usable = usable_within(slack)
+        near = usable_within(slack + near_miss) & ~usable
+        least = {}  # (cell, whether a near miss): the least depth there
+        key = lambda i: (*np.floor(points[i] / cell).astype(np.int64).tolist(), bool(near[i]))  # noqa: E731
+        for i in np.flatnonzero(usable | near):
+            least[key(i)] = min(least.get(key(i), np.inf), depths[i])
+        expected = [i for i in np.flatnonzero(usable | near) if depths[i] <= least[key(i)] + band]
         assert a.triangles[expected].tolist() == b.triangles.tolist()
         beyond_deepest += len(expected) - len(least)
+        near_kept += int(near[expected].sum())
         torch.testing.assert_close(a.depths[expected], b.depths, rtol=0, atol=0)
         kept = reduce_contacts(*(x[usable] for x in (points, depths, contact_normals, face_world)), merge_tol=2 * cell)
-        b_points, b_depths, b_normals = (x.double().numpy() for x in (b.points, b.depths, b.normals))
-        kept_thinned = reduce_contacts(b_points, b_depths, b_normals, normals[b.triangles.numpy()], merge_tol=2 * cell)
-        assert a.triangles[np.flatnonzero(usable)[kept]].tolist() == b.triangles[kept_thinned].tolist()
+        b_usable = np.flatnonzero(usable[expected])  # the thinned rows that are not near misses
+        b_points, b_depths, b_normals = (x.double().numpy()[b_usable] for x in (b.points, b.depths, b.normals))
+        kept_thinned = reduce_contacts(b_points, b_depths, b_normals, normals[b.triangles.numpy()[b_usable]],
+                                       merge_tol=2 * cell)
+        assert a.triangles[np.flatnonzero(usable)[kept]].tolist() == b.triangles[b_usable[kept_thinned]].tolist()
         compared += len(b)
         left_out += int(((depths > 0) & ~usable).sum()) * (step >= 3)
         by_slack += int((usable & ~closing_in_time(points, depths, contact_normals, (origin, np.concatenate(sphere_motion)),
@@ -335,6 +343,7 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
     if band:
         assert beyond_deepest > 0  # cells where more than the proxy's deepest may be the SDF's
     assert (by_slack > 0) == (slack > 0)  # separated contacts kept only because they may touch
+    assert (near_kept > 0) == (near_miss > 0)
 
 
 def test_empty_inputs_give_empty_contacts():

@@ -382,13 +382,14 @@ def test_the_grasp_is_the_same_to_the_last_bit_whatever_the_proxy_cache_held(tmp
     np.testing.assert_array_equal(states[2], states[0])
 
 
-@pytest.mark.parametrize("reduce", ["exact", False])
+@pytest.mark.parametrize("reduce", ["exact", False, True])
 def test_a_contact_the_proxy_reads_as_separated_reaches_mujoco_at_the_sdfs_depth(reduce):
     """A ball at rest 20 um into a box, on a coarse proxy (4 mm cells) that reads its lowest point 40-60 um above the
     box (the trilinear interpolant of a convex SDF lies above it mid-cell): filtered on the proxy's depth, that
     contact is separated and not closing, and was dropped before the SDF saw it. Where the SDF's depths decide
-    (``reduce="exact"`` or False), the filters take a proxy's depth at its least (less its error bound) and the SDF's
-    answer decides: MuJoCo gets the contact at the SDF's depth."""
+    (``reduce="exact"`` or False), the filters take a proxy's depth at its least (less its error bound); on the
+    default (True) it is a near miss (read within the proxy's p99 error of touching); either way the SDF's answer
+    decides: MuJoCo gets the contact at the SDF's depth."""
     from zoo.contact_filters import GRAZING_COS, SEPARATED_COS, usable_rows
     from zoo.proxy import bake_proxy
 
@@ -423,6 +424,27 @@ def test_a_contact_the_proxy_reads_as_separated_reaches_mujoco_at_the_sdfs_depth
     for slack, expected in ((0.0, False), (proxy.error_bound, True)):
         assert usable_rows(bottom, reading, up, up, np.zeros(3), np.zeros(3), 0.003, GRAZING_COS, SEPARATED_COS,
                            slack)[0] == expected
+
+
+@pytest.mark.parametrize("reduce", ["exact", True])
+def test_a_near_miss_the_sdf_has_separated_does_not_reach_mujoco(reduce):
+    """A ball at rest 10 um above a box, on the coarse proxy above, its lowest point where the proxy reads it
+    closest: the proxy reads it separated, within its p99 error (the default's near miss) and its error bound (the
+    exact path's slack), so the collider lets it through; the SDF has it 10 um apart, not closing: MuJoCo gets no
+    contact."""
+    from zoo.proxy import bake_proxy
+
+    sphere = zoo.Sphere(radius=BALL)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=4e-3)
+    gap = 1e-5
+    assert float(proxy.read_numpy(np.array([[0.0, 0.0, -BALL]]))[0][0]) + gap < proxy.error["p99"]  # a node: read exactly
+    model = mujoco.MjModel.from_xml_string(_ball_on('<geom type="box" size="0.2 0.2 0.05" pos="0 0 -0.05"/>', BALL + gap))
+    data = mujoco.MjData(model)
+    world = zoo.sim.attach(model, {"ball": sphere}, method="fw", proxy={"ball": proxy}, reduce=reduce)
+    mujoco.mj_forward(model, data)
+    world.add_contacts(data)
+    assert world.stats.raw_contacts >= 1  # let through to the SDF
+    assert len(world.contacts) == 0
 
 
 def test_surface_extraction_queries_near_the_surface_only_and_matches_a_dense_grid(monkeypatch):

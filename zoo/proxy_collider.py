@@ -110,7 +110,9 @@ class Thinning:
     (``closing``, a :class:`zoo.contact_filters.Closing` (u, w, seconds): u + w x p is the SDF body's velocity less
     the mesh's at the world point p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None:
     every one counts), each test taking a depth at its least, the depth less ``slack`` (m: the proxy's error bound,
-    as a simulation sets it). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to
+    as a simulation sets it). With a ``near_miss`` (m), the contacts these tests drop but would keep with the depth
+    taken that much further below are kept too, in cells of their own: the deepest of them per cell, beside the
+    deepest of the others (a simulation's near misses, :func:`zoo.sim.pairs.proxy_near_miss`). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to
     every pair's proxy contacts, and its reduction keeps at most the deepest per
     such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
     faces within the margin, not more contacts in the manifold)."""
@@ -121,6 +123,7 @@ class Thinning:
     closing: Closing | None = None
     band: float = 0.0
     slack: float = 0.0
+    near_miss: float = 0.0
 
 
 class ProxyCollider:
@@ -284,7 +287,7 @@ class ProxyCollider:
         return thinned_rows(found.values, found.bary, found.tri, found.grads, found.faces, search, self._normal,
                             rotation, sdf_pose[:3, :3], sdf_pose[:3, 3], thin.cell, thin.touching_cos, thin.separated_cos,
                             np.asarray(shift, dtype=np.float64), np.asarray(turn, dtype=np.float64), float(seconds),
-                            float(thin.band), float(thin.slack))
+                            float(thin.band), float(thin.slack), float(thin.near_miss))
 
     def exact_contacts(self, rows) -> Contacts:
         """With ``deferred``: the SDF's own contacts at the rows ``rows`` (R,) of the last call's (proxy) contacts, in

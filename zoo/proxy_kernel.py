@@ -482,10 +482,11 @@ def near_deepest_per_cell(cells, values, band):
 
 @njit(cache=True)
 def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation, sdf_rotation, sdf_shift, cell,
-                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band, slack):
+                 touching_cos, separated_cos, closing_shift, closing_turn, closing_seconds, band, slack, near_miss):
     """The rows (K,) ascending, of a call's answers, that ``zoo.proxy_collider.Thinning`` keeps of its proxy
     contacts (the answers at most ``search``), in one pass: per cell, those a simulation can use
-    (:func:`zoo.contact_filters.usable`) within ``band`` of the deepest of them.
+    (:func:`zoo.contact_filters.usable`) within ``band`` of the deepest of them, and apart from them, those usable
+    only with ``near_miss`` added to the slack (the near misses) within ``band`` of the deepest of those.
 
     Args:
         values (N,), bary (N, 3), tri (N, 3, 3), grads (N, 3), faces (N,): the answers (the SDF's frame).
@@ -494,7 +495,7 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
         cell, touching_cos, separated_cos: the ``Thinning``'s; closing_shift (3,), closing_turn (3,),
             closing_seconds: its ``closing`` (:class:`zoo.contact_filters.Closing`; seconds < 0: none).
         band: m, the ``Thinning``'s (0: the deepest and its equals); slack: m, its ``slack`` (the filters' tests take
-            a proxy depth at its least, the depth less this).
+            a proxy depth at its least, the depth less this); near_miss: m, its ``near_miss`` (0: none).
     """
     n = values.shape[0]
     cells = np.empty((n, 3), dtype=np.int64)
@@ -523,10 +524,15 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
                         + sdf_shift[a])
             normal[a] = sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz
         speed = closing_speed(closing_shift, closing_turn, world, normal) if value > slack else 0.0
+        near = 0  # a near miss: its cell is its own (its x index made odd), apart from the usable contacts'
         if not usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos, slack):
-            continue
+            if not (near_miss > 0 and usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos,
+                                             slack + near_miss)):
+                continue
+            near = 1
         for a in range(3):
             cells[m, a] = int(math.floor(world[a] / cell))
+        cells[m, 0] = 2 * cells[m, 0] + near
         rows[m] = i
         kept_values[m] = value
         m += 1

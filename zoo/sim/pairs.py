@@ -157,6 +157,12 @@ class Pair:
         return 0.0
 
     @property
+    def near_miss(self) -> float:
+        """m: beyond ``depth_slack``, how far separated the filters keep a contact of ``collide`` that they would drop,
+        for the SDF's answer to decide (0: none); see :func:`proxy_near_miss`."""
+        return 0.0
+
+    @property
     def stats(self):
         """``zoo.collider.CoherenceStats`` of its collider so far (None: it has none)."""
         return None
@@ -328,6 +334,10 @@ class MeshPair(SurfacePair):
         return proxy_slack(self.settings.reduce, self.collider.proxy) if self.deferred else 0.0
 
     @property
+    def near_miss(self) -> float:
+        return proxy_near_miss(self.settings.reduce, self.collider.proxy) if self.deferred else 0.0
+
+    @property
     def stats(self):
         return self.collider.stats
 
@@ -353,6 +363,17 @@ def proxy_slack(reduce: bool | str, proxy) -> float:
     proxy's depths (True, the default): a row let through by the slack and picked for a patch's manifold would be
     dropped once the SDF answers it, and the patch would lose its point."""
     return proxy.error_bound if reduce is not True else 0.0
+
+
+def proxy_near_miss(reduce: bool | str, proxy) -> float:
+    """m: where the reduction picks on a proxy's depths (``reduce=True``, the default), how far separated a contact the
+    filters would drop (separated on the proxy, not closing within the step) is kept apart, a near miss: the proxy's
+    p99 error (``proxy.error``), within which the SDF may have it touching. Near misses are thinned and reduced apart
+    from the contacts usable on the proxy's depths, so that they take no point from their manifolds, and the SDF's
+    answers to them are filtered again (:meth:`zoo.sim.world.World.exact_answers`). Not the error bound: twice the
+    largest error lets through rows far more often than the SDF has them touching. 0 elsewhere (the slack,
+    :func:`proxy_slack`, does it there)."""
+    return float(proxy.error.get("p99", 0.0)) if reduce is True else 0.0
 
 
 def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters, frame: str, surface,
@@ -385,7 +406,8 @@ def make_pair(sdf_body: SdfBody, body: int, geom: int, params: ContactParameters
 
         band = 2 * collider.proxy.error_bound if settings.reduce == "exact" else 0.0
         collider.thin = Thinning(MERGE_CELL * sdf_body.merge_distance, GRAZING_COS, SEPARATED_COS, band=band,
-                                 slack=proxy_slack(settings.reduce, collider.proxy))
+                                 slack=proxy_slack(settings.reduce, collider.proxy),
+                                 near_miss=proxy_near_miss(settings.reduce, collider.proxy))
     refined_mesh = RefinedMesh(refined_vertices, refined_faces, cover, face_normals(refined_vertices[refined_faces]))
     return MeshPair(**common, **box, refined=refined_mesh, collider=collider)
 

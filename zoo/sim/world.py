@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -70,7 +70,8 @@ class PairContacts:
     """One pair's contacts at a step (:class:`zoo.collision.ContactArrays`, world frame) and the rows of them MuJoCo
     can use: ``mesh_normals`` (K, 3) their mesh faces' unit normals (zeros where degenerate), ``usable`` (U,) the rows
     kept so far, ``closing`` the pair's relative motion they were filtered with (their depths taken
-    ``pair.depth_slack`` below), ``reduced`` whether those rows are already the reduction's."""
+    ``pair.depth_slack`` below), ``reduced`` whether those rows are already the reduction's, ``near_misses`` (N,) the
+    rows usable only as near misses (``pair.near_miss``), which the SDF's answers must pass the filters again."""
 
     pair: Pair
     contacts: ContactArrays
@@ -78,6 +79,7 @@ class PairContacts:
     usable: np.ndarray
     closing: Closing
     reduced: bool = False
+    near_misses: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 @dataclass
@@ -444,16 +446,23 @@ class World:
     @staticmethod
     def _usable(pair: Pair, contacts, mesh_normals, closing: Closing) -> PairContacts:
         """The pair's contacts (at least one) with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`):
-        facing their faces, and touching or closing within the step (the depths taken ``pair.depth_slack`` below)."""
-        return PairContacts(pair, contacts, mesh_normals, usable_of(contacts, mesh_normals, closing, pair.depth_slack),
-                            closing)
+        facing their faces, and touching or closing within the step (the depths taken ``pair.depth_slack`` below),
+        and apart from them the near misses (usable with the depths taken ``pair.near_miss`` further below)."""
+        usable = usable_of(contacts, mesh_normals, closing, pair.depth_slack)
+        if not pair.near_miss:
+            return PairContacts(pair, contacts, mesh_normals, usable, closing)
+        near = usable_of(contacts, mesh_normals, closing, pair.depth_slack + pair.near_miss)
+        return PairContacts(pair, contacts, mesh_normals, usable, closing, near_misses=np.setdiff1d(near, usable))
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
-        rows kept. Other pairs, and every pair with ``reduce="exact"``, as they are (reduced on the SDF's depths)."""
+        rows kept, its near misses apart (a manifold of their own, added: a near miss the SDF has separated costs no
+        other contact its place). Other pairs, and every pair with ``reduce="exact"``, as they are (reduced on the
+        SDF's depths)."""
         if self.reduce is not True or not found.pair.deferred:
             return found
-        return replace(found, usable=self._reduced(found), reduced=True)
+        near = self._reduced(replace(found, usable=found.near_misses))
+        return replace(found, usable=np.concatenate([self._reduced(found), near]), near_misses=near, reduced=True)
 
     def _reduced(self, found: PairContacts) -> np.ndarray:
         """The usable rows (R,) the reduction keeps (all of them with ``reduce=False``): a manifold per patch, on
@@ -484,9 +493,13 @@ class World:
             answered = np.isin(asked.contacts.triangles[asked.usable], contacts.triangles)
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
-            # a row the slack let through may be separated on the SDF, and not close in time
-            slack = asked.pair.depth_slack
-            usable = usable_of(contacts, mesh_normals, asked.closing, 0.0) if slack else np.arange(len(contacts))
+            # a row the slack or a near miss let through may be separated on the SDF, and not close in time
+            recheck = (np.ones(len(contacts), dtype=bool) if asked.pair.depth_slack
+                       else np.isin(asked.usable[answered], asked.near_misses))
+            usable = np.arange(len(contacts))
+            if recheck.any():
+                usable = np.setdiff1d(usable, np.flatnonzero(recheck))
+                usable = np.union1d(usable, usable_of(contacts, mesh_normals, asked.closing, 0.0))
             found[i] = PairContacts(asked.pair, contacts, mesh_normals, usable, asked.closing, reduced=asked.reduced)
         return found
 
