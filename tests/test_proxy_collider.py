@@ -312,19 +312,17 @@ def test_thinned_contacts_are_the_deepest_per_cell_of_those_a_simulation_can_use
         a, b = every(sdf_pose, lift), thinned(sdf_pose, lift)
         points, depths, contact_normals = (x.double().numpy() for x in (a.points, a.depths, a.normals))
         face_world = normals[a.triangles.numpy()]  # the mesh is only moved
-
-        def usable_within(known):
-            return facing_faces(contact_normals, face_world, depths, known) & closing_in_time(
-                points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)),
-                seconds, known)
-
-        usable = usable_within(slack)
-        near = usable_within(slack + near_miss) & ~usable
-        least = {}  # (cell, whether a near miss): the least depth there
-        key = lambda i: (*np.floor(points[i] / cell).astype(np.int64).tolist(), bool(near[i]))  # noqa: E731
-        for i in np.flatnonzero(usable | near):
-            least[key(i)] = min(least.get(key(i), np.inf), depths[i])
-        expected = [i for i in np.flatnonzero(usable | near) if depths[i] <= least[key(i)] + band]
+        usable, within_near_miss = [facing_faces(contact_normals, face_world, depths, known) & closing_in_time(
+            points, depths, contact_normals, (origin, np.concatenate(sphere_motion)), (np.zeros(3), np.zeros(6)), seconds,
+            known) for known in (slack, slack + near_miss)]
+        near = within_near_miss & ~usable
+        # each row's key: its cell, and whether it is a near miss
+        keys = {i: (*np.floor(points[i] / cell).astype(np.int64).tolist(), bool(near[i]))
+                for i in np.flatnonzero(usable | near)}
+        least = {}
+        for i, key in keys.items():
+            least[key] = min(least.get(key, np.inf), depths[i])
+        expected = [i for i, key in keys.items() if depths[i] <= least[key] + band]
         assert a.triangles[expected].tolist() == b.triangles.tolist()
         beyond_deepest += len(expected) - len(least)
         near_kept += int(near[expected].sum())
