@@ -448,11 +448,11 @@ class World:
         """The pair's contacts (at least one) with the rows MuJoCo can use (:func:`zoo.contact_filters.usable_rows`):
         facing their faces, and touching or closing within the step (the depths taken ``pair.depth_slack`` below),
         and apart from them the near misses (usable with the depths taken ``pair.near_miss`` further below)."""
-        usable = usable_of(contacts, mesh_normals, closing, pair.depth_slack)
+        usable = usable_mask(contacts, mesh_normals, closing, pair.depth_slack)
         if not pair.near_miss:
-            return PairContacts(pair, contacts, mesh_normals, usable, closing)
-        near = usable_of(contacts, mesh_normals, closing, pair.depth_slack + pair.near_miss)
-        return PairContacts(pair, contacts, mesh_normals, usable, closing, near_misses=np.setdiff1d(near, usable))
+            return PairContacts(pair, contacts, mesh_normals, np.flatnonzero(usable), closing)
+        near = usable_mask(contacts, mesh_normals, closing, pair.depth_slack + pair.near_miss) & ~usable
+        return PairContacts(pair, contacts, mesh_normals, np.flatnonzero(usable), closing, near_misses=np.flatnonzero(near))
 
     def _reduced_on_proxy(self, found: PairContacts) -> PairContacts:
         """A proxy's pair with ``reduce=True``: reduced on the proxy's depths, so that the NeuralSDF answers only the
@@ -494,23 +494,26 @@ class World:
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
             # a row the slack or a near miss let through may be separated on the SDF, and not close in time
-            recheck = (np.ones(len(contacts), dtype=bool) if asked.pair.depth_slack
-                       else np.isin(asked.usable[answered], asked.near_misses))
+            if asked.pair.depth_slack:
+                recheck = np.ones(len(contacts), dtype=bool)
+            else:
+                near = np.zeros(len(asked.contacts), dtype=bool)
+                near[asked.near_misses] = True
+                recheck = near[asked.usable[answered]]
             usable = np.arange(len(contacts))
             if recheck.any():
-                usable = np.setdiff1d(usable, np.flatnonzero(recheck))
-                usable = np.union1d(usable, usable_of(contacts, mesh_normals, asked.closing, 0.0))
+                usable = np.flatnonzero(~recheck | usable_mask(contacts, mesh_normals, asked.closing, 0.0))
             found[i] = PairContacts(asked.pair, contacts, mesh_normals, usable, asked.closing, reduced=asked.reduced)
         return found
 
 # -- helpers ---------------------------------------------------------------------------------------
 
 
-def usable_of(contacts: ContactArrays, mesh_normals: np.ndarray, closing: Closing, slack: float) -> np.ndarray:
-    """The rows (U,) of ``contacts`` MuJoCo can use (:func:`zoo.contact_filters.usable_rows`), their depths known
-    within ``slack`` (m)."""
-    return np.flatnonzero(usable_rows(contacts.points, contacts.depths, contacts.normals, mesh_normals, *closing,
-                                      GRAZING_COS, SEPARATED_COS, float(slack)))
+def usable_mask(contacts: ContactArrays, mesh_normals: np.ndarray, closing: Closing, slack: float) -> np.ndarray:
+    """(K,) bool: the rows of ``contacts`` MuJoCo can use (:func:`zoo.contact_filters.usable_rows`), their depths
+    known within ``slack`` (m)."""
+    return usable_rows(contacts.points, contacts.depths, contacts.normals, mesh_normals, *closing, GRAZING_COS,
+                       SEPARATED_COS, float(slack))
 
 
 def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
