@@ -110,12 +110,12 @@ class Thinning:
     (``closing``, a :class:`zoo.contact_filters.Closing` (u, w, seconds): u + w x p is the SDF body's velocity less
     the mesh's at the world point p, and a contact at depth d > 0 counts where (u + w x p) . n * seconds >= d; None:
     every one counts), each test taking a depth at its least, the depth less ``slack`` (m: the proxy's error bound,
-    as a simulation sets it). With a ``near_miss`` (m), the contacts these tests drop but would keep with the depth
+    as a simulation sets it). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to
+    every pair's proxy contacts, and its reduction keeps at most the deepest per such cell of what they let through:
+    the rest would cost it work per row for nothing (a finer mesh puts more faces within the margin, not more
+    contacts in the manifold). With a ``near_miss`` (m), the contacts these tests drop but would keep with the depth
     taken that much further below are kept too, in cells of their own: the deepest of them per cell, beside the
-    deepest of the others (a simulation's near misses, :func:`zoo.sim.pairs.proxy_near_miss`). These are :func:`zoo.contact_filters.usable`'s tests, as a simulation applies them to
-    every pair's proxy contacts, and its reduction keeps at most the deepest per
-    such cell of what they let through: the rest would cost it work per row for nothing (a finer mesh puts more
-    faces within the margin, not more contacts in the manifold)."""
+    deepest of the others (a simulation's near misses, :func:`zoo.sim.pairs.proxy_near_miss`)."""
 
     cell: float
     touching_cos: float

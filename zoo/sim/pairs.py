@@ -370,9 +370,9 @@ def proxy_near_miss(reduce: bool | str, proxy) -> float:
     filters would drop (separated on the proxy, not closing within the step) is kept apart, a near miss: the proxy's
     p99 error (``proxy.error``), within which the SDF may have it touching. Near misses are thinned and reduced apart
     from the contacts usable on the proxy's depths, so that they take no point from their manifolds, and the SDF's
-    answers to them are filtered again (:meth:`zoo.sim.world.World.exact_answers`). Not the error bound: twice the
-    largest error lets through rows far more often than the SDF has them touching. 0 elsewhere (the slack,
-    :func:`proxy_slack`, does it there)."""
+    answers to them are filtered again (:meth:`zoo.sim.world.World.exact_answers`). Not the error bound: within it
+    (twice the largest error, several times the p99 on a thread) many more rows pass than the SDF has touching, each
+    one more answer to ask for. 0 elsewhere (the slack, :func:`proxy_slack`, does it there)."""
     return float(proxy.error.get("p99", 0.0)) if reduce is True else 0.0
 
 
