@@ -4,8 +4,8 @@ most often (the answers and the polishing step of a contact or two).
 :class:`zoo.neural_numpy.NumpyNetwork` makes some 60 numpy calls for a query whatever its size; at one to a few
 points their per-call cost is most of its time. Here the same operations (the shape's similarity into the normalised
 frame and back, the code cloud's features, the decoder's layers keeping each activation's slope, the chain rule back
-through both) are one compiled loop over the points (numba, ``cache=True``), each weight row read once for all points. Its arithmetic is not numpy's BLAS: from a few points on
-the numpy form is faster, and ``NumpyNetwork`` hands this only ``COMPILED_POINTS`` points at most. Answers agree with
+through both) are one compiled loop over the points (numba, ``cache=True``), each weight row read once for all
+points. Its arithmetic is not numpy's BLAS: from a few points on the numpy form is faster, and ``NumpyNetwork`` hands this only ``COMPILED_POINTS`` points at most. Answers agree with
 the numpy form's up to rounding (tests/test_neural.py).
 
 numba is imported here only: ``import zoo`` does not load it.

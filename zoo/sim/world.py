@@ -494,14 +494,13 @@ class World:
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
             # a row the slack or a near miss let through may be separated on the SDF, and not close in time
+            usable = np.arange(len(contacts))
             if asked.pair.depth_slack:
-                recheck = np.ones(len(contacts), dtype=bool)
-            else:
+                usable = np.flatnonzero(usable_mask(contacts, mesh_normals, asked.closing, 0.0))
+            elif len(asked.near_misses):
                 near = np.zeros(len(asked.contacts), dtype=bool)
                 near[asked.near_misses] = True
                 recheck = near[asked.usable[answered]]
-            usable = np.arange(len(contacts))
-            if recheck.any():
                 usable = np.flatnonzero(~recheck | usable_mask(contacts, mesh_normals, asked.closing, 0.0))
             found[i] = PairContacts(asked.pair, contacts, mesh_normals, usable, asked.closing, reduced=asked.reduced)
         return found
