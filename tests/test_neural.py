@@ -17,7 +17,8 @@ from zoo.errors import ChecksumError, InputError, ModelNotFoundError
 from zoo.meshes import Similarity
 from zoo.model import Model, fit_code_cloud
 from zoo.neural import NeuralSDF, NeuralSDFConfig, NeuralShape, code_weights, interpolate_codes
-from zoo.neural_numpy import COMPILED_POINTS, SMALL_BATCH
+from zoo.neural_kernel import _exp_negative, _log1p_unit
+from zoo.neural_numpy import SMALL_BATCH, SOFTPLUS_FLOOR
 
 SMALL = NeuralSDFConfig(n_codes=16, code_dim=8, hidden=(16, 16))
 
@@ -112,8 +113,9 @@ def test_value_and_grad_by_hand_matches_autograd(smooth_beta, fourier_levels, dt
 @pytest.mark.parametrize("smooth_beta,fourier_levels", [(0.0, 0), (100.0, 0), (100.0, 5)], ids=["leaky", "smooth", "fourier"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_levels, dtype):
-    """A few points (at most SMALL_BATCH, as a simulation step asks) take zoo.neural_numpy's path; its values and
-    gradients are autograd's through the torch forward pass, points on code positions included."""
+    """A few points (at most SMALL_BATCH, as a simulation step asks) take zoo.neural_numpy's path (the compiled
+    network); its values and gradients are autograd's through the torch forward pass, points on code positions
+    included."""
     config = dataclasses.replace(SMALL, hidden=(32, 32, 32), smooth_beta=smooth_beta, fourier_levels=fourier_levels)
     torch.manual_seed(4)
     m = NeuralSDF(config, 1, torch.Generator().manual_seed(4))
@@ -124,7 +126,7 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
     p[:3] = torch.as_tensor(SIM.to_source(m.positions[0, :3].detach().double().numpy()))  # exactly on codes
     p = p.to(dtype)
     assert shape._numpy_network(dtype) is not None  # the numpy path is the one taken
-    for n in (1, 2, COMPILED_POINTS, 7, SMALL_BATCH):  # compiled, then numpy
+    for n in (1, 2, 3, 7, SMALL_BATCH):
         d, g = shape.value_and_grad(p[:n])
         x = p[:n].clone().requires_grad_(True)
         with torch.enable_grad():
@@ -144,11 +146,12 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
 
 @pytest.mark.parametrize("smooth_beta,fourier_levels", [(0.0, 0), (100.0, 0), (100.0, 5)], ids=["leaky", "smooth", "fourier"])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_compiled_network_for_one_to_three_points_is_the_numpy_network(smooth_beta, fourier_levels, dtype):
-    """zoo.neural_kernel's compiled call against NumpyNetwork's numpy operations at the same 1 to COMPILED_POINTS
-    points (on code positions, near them, far out, and where the activations saturate): the same values and gradients up
-    to the dtype's rounding of sums taken in another order; and at source-frame points, the similarity applied and
-    undone in the call, numpy's answers through the same similarity."""
+def test_compiled_network_is_the_numpy_network(smooth_beta, fourier_levels, dtype):
+    """zoo.neural_kernel's compiled call against NumpyNetwork's numpy operations at the same 1 to 5 points, and at all
+    of them at once (on code positions, near them, far out, and where the activations saturate): the same values and
+    gradients up to the dtype's rounding (float32: exp and log1p by series, sums in another order); and at
+    source-frame points, the similarity applied and undone in the call, numpy's answers through the same
+    similarity."""
     config = dataclasses.replace(SMALL, hidden=(64, 64, 64), smooth_beta=smooth_beta, fourier_levels=fourier_levels)
     m = NeuralSDF(config, 1, torch.Generator().manual_seed(5))
     with torch.no_grad():
@@ -163,10 +166,10 @@ def test_compiled_network_for_one_to_three_points_is_the_numpy_network(smooth_be
     turn = np.radians(30.0)
     similarity = (dtype(0.8), np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]],
                                        dtype=dtype), np.array([0.1, -0.2, 0.05], dtype=dtype))
-    for start in range(len(points)):
-        x = points[start:start + 1 + start % COMPILED_POINTS]
+    for start in range(len(points) + 1):
+        x = points[start:start + 1 + start % 5] if start < len(points) else points
         values, grads = net.value_and_grad(x.astype(np.float64), *identity)
-        ref_values, ref_grads = net._numpy_value_and_grad(x)
+        ref_values, ref_grads = net.numpy_value_and_grad(x)
         assert values.dtype == grads.dtype == dtype and values.shape == (len(x),) and grads.shape == (len(x), 3)
         scale = 1.0 + np.abs(ref_values).max()
         np.testing.assert_allclose(values, ref_values, rtol=0, atol=tol * scale)
@@ -175,10 +178,24 @@ def test_compiled_network_for_one_to_three_points_is_the_numpy_network(smooth_be
             s, r, t = similarity
             source = np.random.default_rng(start).uniform(-0.6, 0.6, (len(x), 3))
             values, grads = net.value_and_grad(source, s, r, t)
-            ref_values, ref_grads = net._numpy_value_and_grad(s * source.astype(dtype) @ r.T + t)
+            ref_values, ref_grads = net.numpy_value_and_grad(s * source.astype(dtype) @ r.T + t)
             ref_values, ref_grads = ref_values / s, ref_grads @ r
             np.testing.assert_allclose(values, ref_values, rtol=0, atol=tol * (1.0 + np.abs(ref_values).max()))
             np.testing.assert_allclose(grads, ref_grads, rtol=0, atol=tol * (1.0 + np.abs(ref_grads).max()))
+
+
+def test_float32_exp_and_log1p_by_series_are_numpys_to_float32_rounding():
+    """The compiled network's float32 exp(-a) (a in [0, the softplus floor]) and log(1 + e) (e in [0, 1]), series with
+    no libm call, against numpy's in float64 on a dense grid: within 2e-7 of the answer (float32's rounding is 6e-8)."""
+    a = np.linspace(0.0, SOFTPLUS_FLOOR, 400_001).astype(np.float32)
+    by_series = a.copy()
+    _exp_negative(by_series)
+    exact = np.exp(-a.astype(np.float64))
+    assert np.abs(by_series / exact - 1.0).max() < 2e-7
+    e = np.linspace(0.0, 1.0, 100_001).astype(np.float32)
+    by_series = np.array([_log1p_unit(v) for v in e[::97]] + [_log1p_unit(e[-1])], dtype=np.float32)
+    exact = np.log1p(np.concatenate([e[::97], e[-1:]]).astype(np.float64))
+    assert np.abs(by_series - exact).max() < 2e-7 * exact.max() and by_series[0] == 0.0
 
 
 def test_dtypes_are_kept_and_bad_input_rejected():

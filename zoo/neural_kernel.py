@@ -118,24 +118,19 @@ def _features(x, net):
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
 def _decoder(inputs, net):
-    """The decoder's values (P,) and each hidden layer's activation slope at its pre-activation (layers, P, width)."""
+    """The decoder's values (P,) and each hidden layer's activation slope at its pre-activation (layers, P, width):
+    each layer's products in BLAS (``np.dot``: layer 0's rows are [input; 1], the others' [h; input; 1])."""
     dt = inputs.dtype.type
     n, n_in, width, n_layers = inputs.shape[0], inputs.shape[1], net.weights[0].shape[1], len(net.weights)
-    slope, beta, floor, one = dt(net.slope), dt(net.beta), dt(net.floor), dt(1.0)
     h = np.empty((n, width), inputs.dtype)
-    pre = np.empty((n, width), inputs.dtype)
     slopes = np.empty((n_layers, n, width), inputs.dtype)
     for layer in range(n_layers):
         weight = net.weights[layer]
-        first = 0 if layer == 0 else width  # layer 0's rows are [input; 1], the others' [h; input; 1]
-        for p in range(n):
-            pre[p] = weight[first + n_in]
+        first = 0 if layer == 0 else width
+        pre = np.dot(inputs, weight[first:first + n_in])
         if layer:
-            _add_product(h, weight, 0, width, pre)
-        _add_product(inputs, weight, first, n_in, pre)
-        for p in range(n):
-            for j in range(width):
-                h[p, j], slopes[layer, p, j] = _activation_and_slope(pre[p, j], slope, beta, floor, one)
+            pre += np.dot(h, weight[:width])
+        _activation_and_slope(pre, weight[first + n_in], dt(net.slope), dt(net.beta), dt(net.floor), h, slopes[layer])
     values = np.empty(n, inputs.dtype)
     for p in range(n):
         value = net.out_bias[0]
@@ -146,59 +141,88 @@ def _decoder(inputs, net):
 
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
-def _add_product(inputs, weight, first_row, n_rows, out):
-    """out (P, W) += inputs (P, n_rows) @ weight[first_row:first_row + n_rows]: each weight row read once for every
-    point."""
-    n, width = out.shape
-    for i in range(n_rows):
-        row = weight[first_row + i]
-        for p in range(n):
-            v = inputs[p, i]
+def _activation_and_slope(pre, bias, slope, beta, floor, h, slopes):
+    """``zoo.neural.activation`` and its derivative at ``pre + bias`` (P, W), written to ``h`` and ``slopes``: the
+    LeakyReLU (``beta`` 0), or slope v + (1 - slope) softplus_beta(v), softplus's input held above ``-floor`` and v
+    itself above torch's threshold of 20. Every scalar in the arrays' dtype (a Python number would widen float32 to
+    float64). Branch-free selects, so that the compiler vectorises the loops; for float32, exp and log1p by
+    :func:`_exp_negative` and :func:`_log1p_unit` (float64: libm's)."""
+    n, width = pre.shape
+    one = slope / slope
+    zero = one - one
+    single = pre.itemsize == 4
+    e = np.empty(width, pre.dtype)
+    for p in range(n):
+        if beta == zero:
             for j in range(width):
-                out[p, j] += v * row[j]
+                v = pre[p, j] + bias[j]
+                h[p, j] = v if v > zero else slope * v
+                slopes[p, j] = one if v > zero else slope
+            continue
+        for j in range(width):
+            e[j] = min(abs(beta * (pre[p, j] + bias[j])), floor)
+        if single:
+            _exp_negative(e)
+        else:
+            for j in range(width):
+                e[j] = np.exp(-e[j])  # no overflow, no denormals
+        for j in range(width):
+            v = pre[p, j] + bias[j]
+            bx = beta * v
+            log1p = _log1p_unit(e[j]) if single else np.log1p(e[j])
+            soft = v if bx > 20 * one else (log1p + max(bx, zero)) / beta
+            h[p, j] = (one - slope) * soft + slope * v
+            slopes[p, j] = slope + (one - slope) * (one if bx >= zero else e[j]) / (one + e[j])
+
+
+LN2_HIGH, LN2_LOW = 0.693145751953125, 1.428606765330187e-06  # ln 2 in two parts: k ln 2 exact in float32 for k < 256
 
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
-def _activation_and_slope(v, slope, beta, floor, one):
-    """``zoo.neural.activation`` and its derivative at ``v``: the LeakyReLU (``beta`` 0), or slope v + (1 - slope)
-    softplus_beta(v), softplus's input held above ``-floor`` and v itself above torch's threshold of 20. Every
-    argument of v's dtype (``one`` its 1: a Python number would widen float32 to float64)."""
-    zero = one - one
-    if beta == zero:
-        return (v, one) if v > zero else (slope * v, slope)
-    bx = beta * v
-    e = np.exp(-min(abs(bx), floor))  # no overflow, no denormals
-    soft = v if bx > 20 * one else (np.log1p(e) + max(bx, zero)) / beta
-    sigmoid = one / (one + e) if bx >= zero else e / (one + e)
-    return (one - slope) * soft + slope * v, slope + (one - slope) * sigmoid
+def _exp_negative(a):
+    """exp(-a) in place for ``a`` (W,) float32 in [0, 126]: 2^-k exp(-r), r = a - k ln 2 within ln 2 / 2, the power of
+    two built in the exponent's bits and exp(-r) its Taylor series to r^7 (relative error below 1e-7, float32's
+    rounding): no libm call, so the loop is vectorised."""
+    bits = np.empty(a.shape[0], np.int32)
+    powers = bits.view(np.float32)
+    log2e, high, low = np.float32(1.4426950408889634), np.float32(LN2_HIGH), np.float32(LN2_LOW)
+    c2, c3, c4, c5, c6, c7 = np.float32(1 / 2), np.float32(1 / 6), np.float32(1 / 24), np.float32(1 / 120), np.float32(1 / 720), np.float32(1 / 5040)
+    one = np.float32(1.0)
+    for j in range(a.shape[0]):
+        k = np.int32(a[j] * log2e + np.float32(0.5))
+        bits[j] = (127 - k) << 23  # 2^-k
+        r = (np.float32(k) * high - a[j]) + np.float32(k) * low  # -a + k ln 2
+        a[j] = one + r * (one + r * (c2 + r * (c3 + r * (c4 + r * (c5 + r * (c6 + r * c7))))))
+    for j in range(a.shape[0]):
+        a[j] *= powers[j]
+
+
+@njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
+def _log1p_unit(e):
+    """log(1 + e) for a float32 ``e`` in [0, 1]: 2 atanh(s), s = e / (2 + e) at most 1/3, by its series to s^15
+    (relative error below 1e-8): no libm call."""
+    s = e / (np.float32(2.0) + e)
+    t = s * s
+    c1, c2, c3, c4 = np.float32(1 / 3), np.float32(1 / 5), np.float32(1 / 7), np.float32(1 / 9)
+    c5, c6, c7 = np.float32(1 / 11), np.float32(1 / 13), np.float32(1 / 15)
+    return np.float32(2.0) * s * (np.float32(1.0) + t * (c1 + t * (c2 + t * (c3 + t * (c4 + t * (c5 + t * (c6 + t * c7)))))))
 
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
 def _chain_rule(slopes, net, n_in):
-    """d value / d input (P, n_in), back through the layers from their ``slopes`` (layers, P, width)."""
+    """d value / d input (P, n_in), back through the layers from their ``slopes`` (layers, P, width), each layer's
+    product in BLAS."""
     n_layers, n, width = slopes.shape
     grad_h = np.empty((n, width), slopes.dtype)
     for p in range(n):
         grad_h[p] = net.out_weight[:, 0]
     grad_in = np.zeros((n, n_in), slopes.dtype)
-    g = np.empty((n, width), slopes.dtype)
     for layer in range(n_layers - 1, -1, -1):
-        weight_t = net.weights_t[layer]
-        for p in range(n):
-            for j in range(width):
-                g[p, j] = grad_h[p, j] * slopes[layer, p, j]
+        rows = np.dot(grad_h * slopes[layer], net.weights_t[layer])  # [h; input; 1], or [input; 1] for layer 0
         first = 0 if layer == 0 else width
         if layer:
-            grad_h[:] = 0
-        for j in range(width):
-            row = weight_t[j]
-            for p in range(n):
-                gj = g[p, j]
-                if layer:
-                    for i in range(width):
-                        grad_h[p, i] += gj * row[i]
-                for i in range(n_in):
-                    grad_in[p, i] += gj * row[first + i]
+            grad_h = np.ascontiguousarray(rows[:, :width])
+        grad_in += rows[:, first:first + n_in]
     return grad_in
 
 

@@ -1,14 +1,13 @@
-"""A NeuralSDF shape's value and gradient at a few points in numpy: what a simulation step asks, at numpy's cost.
+"""A NeuralSDF shape's value and gradient at a few points without torch: what a simulation step asks.
 
 A simulation step asks the NeuralSDF at a handful of points (the contacts kept). For so few points the arithmetic is
 small and torch's cost per operation (a few microseconds, some 60 operations for the value and its chain rule) is
-most of the call. :class:`NumpyNetwork` makes the same operations as
-:meth:`zoo.neural.NeuralShape._value_and_grad_by_hand` (the decoder's forward pass keeping each layer's
-pre-activation, then the chain rule by hand, layer by layer, and through the code cloud's interpolation) in numpy, whose
-cost per operation is a third of torch's. :meth:`zoo.neural.NeuralShape.value_and_grad` takes this path for at most
-``SMALL_BATCH`` points on the CPU without autograd; docs/proxy.md measures both paths. At one to
-``COMPILED_POINTS`` points even numpy's per-call cost is most of the call, and the same operations run as one compiled
-call (:mod:`zoo.neural_kernel`).
+most of the call. :class:`NumpyNetwork` holds one shape's network as numpy arrays and answers
+:meth:`zoo.neural.NeuralShape._value_and_grad_by_hand`'s operations (the decoder's forward pass keeping each layer's
+activation slope, then the chain rule by hand, layer by layer, and through the code cloud's interpolation) as one
+compiled call (:mod:`zoo.neural_kernel`). :meth:`zoo.neural.NeuralShape.value_and_grad` takes this path for at most
+``SMALL_BATCH`` points on the CPU without autograd; docs/proxy.md measures it. The same operations in numpy
+(:meth:`NumpyNetwork.numpy_value_and_grad`) are the reference the compiled call is tested against.
 """
 
 from __future__ import annotations
@@ -16,8 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 SOFTPLUS_FLOOR = 40.0  # beta x below -this: the smooth activation's softplus is taken there (zoo.neural.activation)
-SMALL_BATCH = 512  # points: at most this many, on the CPU and without autograd, are asked in numpy
-COMPILED_POINTS = 3  # points: at most this many are asked in one compiled call (numpy's per-call cost dominates there)
+SMALL_BATCH = 512  # points: at most this many, on the CPU and without autograd, are asked without torch
 
 
 class NumpyNetwork:
@@ -50,17 +48,13 @@ class NumpyNetwork:
                        ) -> tuple[np.ndarray, np.ndarray]:
         """Distances (P,) and gradients (P, 3), in this network's dtype, at source-frame points ``points`` (P, 3): the
         network at ``scale * points @ rotation.T + shift`` (a shape's similarity in this dtype: a scalar, (3, 3),
-        (3,)), the distances over the scale and the gradients in the source frame (R^T g). At most
-        ``COMPILED_POINTS`` points in one compiled call, similarity included (:mod:`zoo.neural_kernel`), more in
-        numpy."""
-        if len(points) <= COMPILED_POINTS:
-            from .neural_kernel import value_and_grad
+        (3,)), the distances over the scale and the gradients in the source frame (R^T g): one compiled call,
+        similarity included (:mod:`zoo.neural_kernel`)."""
+        from .neural_kernel import value_and_grad
 
-            # a writable C-ordered float64 copy: the one array type the call is compiled for (at a simulation's
-            # attach), whatever view a caller passes
-            return value_and_grad(np.array(points, dtype=np.float64, order="C"), scale, rotation, shift, self._arrays())
-        values, grads = self._numpy_value_and_grad(scale * points.astype(self.dtype, copy=False) @ rotation.T + shift)
-        return values / scale, grads @ rotation  # the source frame's gradient: R^T grad_n (the scale cancels)
+        # a writable C-ordered float64 copy: the one array type the call is compiled for (at a simulation's attach),
+        # whatever view a caller passes
+        return value_and_grad(np.array(points, dtype=np.float64, order="C"), scale, rotation, shift, self._arrays())
 
     def _arrays(self):
         """This network as :class:`zoo.neural_kernel.NetworkArrays` (made at the first compiled call)."""
@@ -72,7 +66,9 @@ class NumpyNetwork:
                                            self.eps, self.slope, self.beta, SOFTPLUS_FLOOR)
         return self._kernel_arrays
 
-    def _numpy_value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def numpy_value_and_grad(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Values (P,) and gradients (P, 3) at normalised points ``x`` (P, 3) in this network's dtype, by numpy
+        operations: the reference :meth:`value_and_grad`'s compiled call is tested against (tests/test_neural.py)."""
         z, r, total = self._features(x)
         value, grad_z, grad_x = self._decoder(z, x)
         grad_x += self._features_backward(x, z, grad_z, r, total)
