@@ -312,7 +312,7 @@ def kernels(scenario: str, steps: int | None) -> dict:
 
 def network_costs(repeats: int = 200) -> dict:
     """A NeuralSDF's value and gradient (``value_and_grad``) at 1, 3, 10, 64, 256, 512 and 1,000 points: microseconds
-    a call on the path it takes (numpy up to ``SMALL_BATCH`` points, torch's chain rule by hand above), and on torch's by-hand path
+    a call on the path it takes (the compiled network up to ``SMALL_BATCH`` points, torch's chain rule by hand above), and on torch's by-hand path
     at the same points, float32, the mugs' hoi4d_mug_0001 and the bolts' factory_bolt_m16."""
     import zoo
     from zoo.neural_numpy import SMALL_BATCH

@@ -1,12 +1,13 @@
-"""A NeuralSDF shape's value and gradient at one to a few points as one compiled function: what a simulation step asks
-most often (the answers and the polishing step of a contact or two).
+"""A NeuralSDF shape's value and gradient at a few points as one compiled function: what a simulation step asks
+(the answers and the polishing step of its contacts, a capsule's samples).
 
-:class:`zoo.neural_numpy.NumpyNetwork` makes some 60 numpy calls for a query whatever its size; at one to a few
+:class:`zoo.neural_numpy.NumpyNetwork` in numpy makes some 60 numpy calls for a query whatever its size; at a few
 points their per-call cost is most of its time. Here the same operations (the shape's similarity into the normalised
 frame and back, the code cloud's features, the decoder's layers keeping each activation's slope, the chain rule back
-through both) are one compiled loop over the points (numba, ``cache=True``), each weight row read once for all
-points. Its arithmetic is not numpy's BLAS: from a few points on the numpy form is faster, and ``NumpyNetwork`` hands this only ``COMPILED_POINTS`` points at most. Answers agree with
-the numpy form's up to rounding (tests/test_neural.py).
+through both) are one compiled call (numba, ``cache=True``): each layer's products in BLAS (``np.dot``, which numba
+takes from SciPy), the rest in loops over the points. In float32 the smooth activation's exp and log1p are series
+with no libm call (:func:`_exp_negative`, :func:`_log1p_unit`), so that its loops are vectorised; float64 takes
+libm's. Answers agree with the numpy operations' up to rounding (tests/test_neural.py).
 
 numba is imported here only: ``import zoo`` does not load it.
 """
@@ -151,7 +152,8 @@ def _activation_and_slope(pre, bias, slope, beta, floor, h, slopes):
     one = slope / slope
     zero = one - one
     single = pre.itemsize == 4
-    e = np.empty(width, pre.dtype)
+    e = np.empty(width, pre.dtype)  # exp(-|beta v|), then log(1 + that)
+    log1p = np.empty(width, pre.dtype)
     for p in range(n):
         if beta == zero:
             for j in range(width):
@@ -161,16 +163,18 @@ def _activation_and_slope(pre, bias, slope, beta, floor, h, slopes):
             continue
         for j in range(width):
             e[j] = min(abs(beta * (pre[p, j] + bias[j])), floor)
-        if single:
+        if single:  # each loop apart, with no call in it: vectorised
             _exp_negative(e)
+            for j in range(width):
+                log1p[j] = _log1p_unit(e[j])
         else:
             for j in range(width):
                 e[j] = np.exp(-e[j])  # no overflow, no denormals
+                log1p[j] = np.log1p(e[j])
         for j in range(width):
             v = pre[p, j] + bias[j]
             bx = beta * v
-            log1p = _log1p_unit(e[j]) if single else np.log1p(e[j])
-            soft = v if bx > 20 * one else (log1p + max(bx, zero)) / beta
+            soft = v if bx > 20 * one else (log1p[j] + max(bx, zero)) / beta
             h[p, j] = (one - slope) * soft + slope * v
             slopes[p, j] = slope + (one - slope) * (one if bx >= zero else e[j]) / (one + e[j])
 

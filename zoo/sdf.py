@@ -52,7 +52,7 @@ def autograd_value_and_grad(fn, points: torch.Tensor) -> tuple[torch.Tensor, tor
 
 def value_and_grad_numpy(sdf, points: np.ndarray, dtype: torch.dtype = torch.float32) -> tuple[np.ndarray, np.ndarray]:
     """``sdf``'s values (N,) and gradients (N, 3), float64 numpy, at ``points`` (N, 3) numpy, asked in ``dtype``: through
-    its numpy network where it has one for so few points (a NeuralShape's ``value_and_grad_few``: no torch round
+    its compiled network where it has one for so few points (a NeuralShape's ``value_and_grad_few``: no torch round
     trip, whose fixed cost is most of a small query's), else through ``value_and_grad``. For colliders that ask a
     handful of points many times a step."""
     few = getattr(sdf, "value_and_grad_few", None)
