@@ -437,7 +437,8 @@ def polish_ends(tri, bary, grads, samples, grid, missing, counts):
 @njit(cache=True)
 def first_of_cell(cells):
     """For each row of ``cells`` (N, 3) int64, the first row (N,) with the same cell: one pass over an open-addressing
-    table, where sorting the rows by cell would cost more than the rows' other work."""
+    table, where sorting the rows by cell would cost more than the rows' other work. A row in its predecessor's cell
+    takes its answer with no lookup (a search's rows come cluster by cluster, neighbours in space)."""
     n = cells.shape[0]
     size = 16
     while size < 2 * n:
@@ -446,6 +447,9 @@ def first_of_cell(cells):
     slot_row = np.full(size, -1, dtype=np.int64)
     first = np.empty(n, dtype=np.int64)
     for i in range(n):
+        if i and cells[i, 0] == cells[i - 1, 0] and cells[i, 1] == cells[i - 1, 1] and cells[i, 2] == cells[i - 1, 2]:
+            first[i] = first[i - 1]
+            continue
         h = (cells[i, 0] * 73856093) ^ (cells[i, 1] * 19349663) ^ (cells[i, 2] * 83492791)
         s = h & mask
         while True:
@@ -517,11 +521,12 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
                + face_normal[f, 1] * (rotation[0, 1] * gx + rotation[1, 1] * gy + rotation[2, 1] * gz)
                + face_normal[f, 2] * (rotation[0, 2] * gx + rotation[1, 2] * gy + rotation[2, 2] * gz))
         degenerate = face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0
+        b0, b1, b2 = bary[i, 0], bary[i, 1], bary[i, 2]
+        px = b0 * tri[i, 0, 0] + b1 * tri[i, 1, 0] + b2 * tri[i, 2, 0]  # the point, SDF frame
+        py = b0 * tri[i, 0, 1] + b1 * tri[i, 1, 1] + b2 * tri[i, 2, 1]
+        pz = b0 * tri[i, 0, 2] + b1 * tri[i, 1, 2] + b2 * tri[i, 2, 2]
         for a in range(3):  # the point and the normal in the world
-            world[a] = (sdf_rotation[a, 0] * (bary[i, 0] * tri[i, 0, 0] + bary[i, 1] * tri[i, 1, 0] + bary[i, 2] * tri[i, 2, 0])
-                        + sdf_rotation[a, 1] * (bary[i, 0] * tri[i, 0, 1] + bary[i, 1] * tri[i, 1, 1] + bary[i, 2] * tri[i, 2, 1])
-                        + sdf_rotation[a, 2] * (bary[i, 0] * tri[i, 0, 2] + bary[i, 1] * tri[i, 1, 2] + bary[i, 2] * tri[i, 2, 2])
-                        + sdf_shift[a])
+            world[a] = sdf_rotation[a, 0] * px + sdf_rotation[a, 1] * py + sdf_rotation[a, 2] * pz + sdf_shift[a]
             normal[a] = sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz
         speed = closing_speed(closing_shift, closing_turn, world, normal) if value > slack else 0.0
         near = 0  # a near miss: its cell is its own (its x index made odd), apart from the usable contacts'
