@@ -164,5 +164,5 @@ def _norm3(x, y, z):
 
 @njit(cache=True, nogil=True, inline="always")
 def _row_dot(m, k, v):
-    """(m v)[k] for a 3x3 ``m`` (numba's matrix product needs SciPy's BLAS, which a simulation does not install)."""
+    """(m v)[k] for a 3x3 ``m`` (numba's matrix product is a call into SciPy's BLAS, dearer than nine products)."""
     return m[k, 0] * v[0] + m[k, 1] * v[1] + m[k, 2] * v[2]
