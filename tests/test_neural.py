@@ -112,7 +112,7 @@ def test_value_and_grad_by_hand_matches_autograd(smooth_beta, fourier_levels, dt
 
 @pytest.mark.parametrize("smooth_beta,fourier_levels", [(0.0, 0), (100.0, 0), (100.0, 5)], ids=["leaky", "smooth", "fourier"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_levels, dtype):
+def test_the_compiled_network_for_a_few_points_matches_autograd(smooth_beta, fourier_levels, dtype):
     """A few points (at most SMALL_BATCH, as a simulation step asks) take zoo.neural_numpy's path (the compiled
     network); its values and gradients are autograd's through the torch forward pass, points on code positions
     included."""
@@ -125,7 +125,7 @@ def test_numpy_network_for_a_few_points_matches_autograd(smooth_beta, fourier_le
     p = (torch.rand(SMALL_BATCH, 3, dtype=torch.float64) - 0.5) * 0.5
     p[:3] = torch.as_tensor(SIM.to_source(m.positions[0, :3].detach().double().numpy()))  # exactly on codes
     p = p.to(dtype)
-    assert shape._numpy_network(dtype) is not None  # the numpy path is the one taken
+    assert shape._numpy_network(dtype) is not None  # the compiled path is the one taken
     for n in (1, 2, 3, 7, SMALL_BATCH):
         d, g = shape.value_and_grad(p[:n])
         x = p[:n].clone().requires_grad_(True)
