@@ -559,7 +559,7 @@ class NeuralShape(SDFBase):
 
     def value_and_grad_few(self, points: np.ndarray, dtype: torch.dtype = torch.float32):
         """:meth:`value_and_grad` at a few points (at most ``SMALL_BATCH``, (N, 3) numpy, source frame), asked in
-        ``dtype`` and answered as numpy arrays in it: (values (N,), gradients (N, 3)), or None where the numpy network
+        ``dtype`` and answered as numpy arrays in it: (values (N,), gradients (N, 3)), or None where the compiled network
         does not apply (more points, or a decoder it does not support). No validation, no torch: for a collider that
         asks a handful of points many times a step."""
         if len(points) > SMALL_BATCH:
