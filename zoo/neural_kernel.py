@@ -154,6 +154,7 @@ def _activation_and_slope(pre, bias, slope, beta, floor, h, slopes):
     single = pre.itemsize == 4
     e = np.empty(width, pre.dtype)  # exp(-|beta v|), then log(1 + that)
     log1p = np.empty(width, pre.dtype)
+    bits = np.empty(width, np.int32)  # _exp_negative's powers of two, one buffer for every point and layer
     for p in range(n):
         if beta == zero:
             for j in range(width):
@@ -164,7 +165,7 @@ def _activation_and_slope(pre, bias, slope, beta, floor, h, slopes):
         for j in range(width):
             e[j] = min(abs(beta * (pre[p, j] + bias[j])), floor)
         if single:  # each loop apart, with no call in it: vectorised
-            _exp_negative(e)
+            _exp_negative(e, bits)
             for j in range(width):
                 log1p[j] = _log1p_unit(e[j])
         else:
@@ -183,11 +184,10 @@ LN2_HIGH, LN2_LOW = 0.693145751953125, 1.428606765330187e-06  # ln 2 in two part
 
 
 @njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy", inline="always")
-def _exp_negative(a):
+def _exp_negative(a, bits):
     """exp(-a) in place for ``a`` (W,) float32 in [0, 87] (2^-k a normal float32): 2^-k exp(-r), r = a - k ln 2 within
     ln 2 / 2, the power of two built in the exponent's bits and exp(-r) its Taylor series to r^7 (within 2e-7 of the
-    answer, tests/test_neural.py): no libm call, so the loop is vectorised."""
-    bits = np.empty(a.shape[0], np.int32)
+    answer, tests/test_neural.py): no libm call, so the loop is vectorised. ``bits`` (W,) int32: scratch."""
     powers = bits.view(np.float32)
     log2e, high, low = np.float32(1.4426950408889634), np.float32(LN2_HIGH), np.float32(LN2_LOW)
     c2, c3, c4, c5, c6, c7 = np.float32(1 / 2), np.float32(1 / 6), np.float32(1 / 24), np.float32(1 / 120), np.float32(1 / 720), np.float32(1 / 5040)
