@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from zoo.sim.contacts import FLAT_COS, MAX_PER_PATCH, MERGE_CELL, PATCH_COS, tangent_frames
+from zoo.sim.contacts import FLAT_COS, MAX_PER_PATCH, MERGE_CELL, PATCH_COS
 
 
 def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, faces: np.ndarray, merge_tol: float,
@@ -81,3 +81,14 @@ def _area_gain(flat: np.ndarray, polygon: np.ndarray, normal: np.ndarray) -> np.
     to_point = points[:, None] - a[None]  # (P, K, 2)
     signed = edge[None, :, 0] * to_point[..., 1] - edge[None, :, 1] * to_point[..., 0]  # (P, K): > 0 inside each edge
     return np.clip(-signed, 0.0, None).sum(axis=1) / 2
+
+
+def tangent_frames(normals: np.ndarray) -> np.ndarray:
+    """(K, 3) unit normals -> (K, 9) contact frames in numpy: the normal, then t1 = n x (x, or y where n is near x)
+    made unit, then t2 = n x t1 (``zoo.sim.contacts.tangents``' reference)."""
+    helper = np.zeros_like(normals)
+    x_ok = np.abs(normals[:, 0]) < 0.9
+    helper[x_ok, 0], helper[~x_ok, 1] = 1.0, 1.0
+    t1 = np.cross(normals, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return np.concatenate([normals, t1, np.cross(normals, t1)], axis=1)

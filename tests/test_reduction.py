@@ -5,7 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from naive_reduction import reduce_contacts as naive_reduce
+from naive_reduction import tangent_frames
 
+from zoo.collision import ContactArrays
+from zoo.sim.contacts import contact_rows
 from zoo.sim.reduction import reduce_contacts
 
 
@@ -48,3 +51,28 @@ def test_compiled_reduction_keeps_the_rows_the_numpy_reference_keeps(seed):
 def test_no_contacts_reduce_to_none():
     empty = np.zeros((0, 3))
     assert reduce_contacts(empty, np.zeros(0), empty, empty, 1e-3).tolist() == []
+
+
+
+def test_compiled_contact_rows_are_the_numpy_formulas():
+    """MuJoCo's rows (positions p - d n / 2, frames: the normal and two tangents) from the compiled pass against numpy's
+    cross products, on normals of every direction, those near x (the other helper axis) included, at rows picked
+    out of order; the frames orthonormal and right-handed."""
+    rng = np.random.default_rng(7)
+    n = 400
+    normals = unit(rng.normal(size=(n, 3)))
+    normals[:60] = unit(np.array([1.0, 0.0, 0.0]) * rng.choice([-1.0, 1.0], size=(60, 1)) + rng.normal(scale=0.2, size=(60, 3)))
+    points, depths = rng.uniform(-0.1, 0.1, size=(n, 3)), rng.uniform(-2e-3, 1e-3, size=n)
+    contacts = ContactArrays(points, depths, normals, np.zeros(n, dtype=np.int64), np.zeros((n, 3)), n_triangles=n,
+                             n_candidates=n, method="test")
+    keep = rng.permutation(n)[:250]
+    rows = contact_rows(contacts, keep, (3, 7))
+    expected = tangent_frames(normals[keep])
+    assert (np.abs(normals[keep, 0]) >= 0.9).sum() > 10  # both helper axes exercised
+    np.testing.assert_allclose(rows.frame, expected, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(rows.pos, points[keep] - 0.5 * depths[keep, None] * normals[keep], rtol=0, atol=1e-15)
+    assert rows.dist.tolist() == depths[keep].tolist() and rows.geom.tolist() == [[3, 7]] * len(keep)
+    axes = rows.frame.reshape(-1, 3, 3)
+    np.testing.assert_allclose(axes @ axes.transpose(0, 2, 1), np.broadcast_to(np.eye(3), axes.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(axes[:, [1, 2, 0]]), 1.0, atol=1e-12)  # (t1, t2, n) right-handed
+    assert len(contact_rows(contacts, np.zeros(0, dtype=np.int64), (3, 7))) == 0

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import njit
 
-from ..geometry import cross, edge_lengths, faces_touching_box
+from ..geometry import edge_lengths, faces_touching_box
 
 PATCH_COS = math.cos(math.radians(20.0))  # faces within 20 degrees of a patch's deepest contact's face join it
 FLAT_COS = math.cos(math.radians(5.0))  # a patch's extra points: SDF normals within 5 degrees of its deepest's
@@ -266,24 +267,45 @@ def _subdivide(polygon: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.nda
 # -- MuJoCo rows ----------------------------------------------------------------------------
 
 
-def tangent_frames(normals: np.ndarray) -> np.ndarray:
-    """(K, 3) unit normals -> (K, 9) contact frames: normal, then two unit tangents (right-handed)."""
-    helper = np.zeros_like(normals)  # x, or y where the normal is near x
-    x_ok = np.abs(normals[:, 0]) < 0.9
-    helper[x_ok, 0], helper[~x_ok, 1] = 1.0, 1.0
-    t1 = cross(normals, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = cross(normals, t1)
-    return np.concatenate([normals, t1, t2], axis=1)
+@njit(cache=True)
+def tangents(nx, ny, nz):
+    """Two unit tangents (t1, t2) of the unit normal (nx, ny, nz), (t1, t2, normal) right-handed, as 3-tuples: t1 is
+    the normal crossed with x, or with y where the normal is near x; t2 the normal crossed with t1."""
+    hx, hy, hz = (1.0, 0.0, 0.0) if abs(nx) < 0.9 else (0.0, 1.0, 0.0)
+    ax, ay, az = ny * hz - nz * hy, nz * hx - nx * hz, nx * hy - ny * hx
+    length = math.sqrt(ax * ax + ay * ay + az * az)
+    ax, ay, az = ax / length, ay / length, az / length
+    return (ax, ay, az), (ny * az - nz * ay, nz * ax - nx * az, nx * ay - ny * ax)
+
+
+@njit(cache=True)
+def _positions_and_frames(points, depths, normals, keep):
+    """:func:`contact_rows`' positions (K, 3) and frames (K, 9) at the rows ``keep`` (K,) of ``points`` (N, 3),
+    ``depths`` (N,), ``normals`` (N, 3)."""
+    k = keep.shape[0]
+    pos = np.empty((k, 3))
+    frame = np.empty((k, 9))
+    for i in range(k):
+        r = keep[i]
+        nx, ny, nz = normals[r, 0], normals[r, 1], normals[r, 2]
+        half = 0.5 * depths[r]
+        pos[i, 0], pos[i, 1], pos[i, 2] = points[r, 0] - half * nx, points[r, 1] - half * ny, points[r, 2] - half * nz
+        t1, t2 = tangents(nx, ny, nz)
+        frame[i, 0], frame[i, 1], frame[i, 2] = nx, ny, nz
+        frame[i, 3], frame[i, 4], frame[i, 5] = t1
+        frame[i, 6], frame[i, 7], frame[i, 8] = t2
+    return pos, frame
 
 
 def contact_rows(contacts, keep: np.ndarray, geoms: tuple[int, int]) -> ContactRows:
-    """MuJoCo rows of ``contacts`` (:class:`zoo.collision.ContactArrays`, world frame) at the indices ``keep``."""
-    points, depths, normals = contacts.points[keep], contacts.depths[keep], contacts.normals[keep]
-    # the mesh point lies at depth d along the SDF's normal from the SDF's surface: the surface is at p - d n
-    pos = points - 0.5 * depths[:, None] * normals
-    geom = np.tile(np.asarray(geoms, dtype=np.int32), (len(keep), 1))
-    return ContactRows(pos=pos, dist=depths, frame=tangent_frames(normals), geom=geom)
+    """MuJoCo rows of ``contacts`` (:class:`zoo.collision.ContactArrays`, world frame) at the indices ``keep``: the
+    mesh point lies at depth d along the SDF's normal n from the SDF's surface, so the surface is at p - d n, and the
+    row's position is their midpoint p - d n / 2."""
+    keep = np.asarray(keep, dtype=np.int64)
+    pos, frame = _positions_and_frames(contacts.points, contacts.depths, contacts.normals, keep)
+    geom = np.empty((len(keep), 2), dtype=np.int32)
+    geom[:] = geoms
+    return ContactRows(pos=pos, dist=contacts.depths[keep], frame=frame, geom=geom)
 
 
 def add_contacts(model, data, rows: ContactRows, params) -> int:

@@ -20,6 +20,7 @@ from functools import cached_property
 
 import numpy as np
 import torch
+from numba import njit
 
 import zoo
 
@@ -273,9 +274,7 @@ class SurfacePair(Pair):
 
     def boxes_apart(self, t_sdf: np.ndarray, t_other: np.ndarray, margin: float) -> bool:
         """Whether the world boxes of the SDF (grown by ``margin``) and of the mesh do not overlap."""
-        world_lo, world_hi = _world_box(t_sdf, self.sdf_body.lo - margin, self.sdf_body.hi + margin)
-        mesh_lo, mesh_hi = _world_box(t_other, self.lo, self.hi)
-        return bool((world_hi < mesh_lo).any() or (mesh_hi < world_lo).any())
+        return _boxes_apart(t_sdf, self.sdf_body.lo, self.sdf_body.hi, float(margin), t_other, self.lo, self.hi)
 
 
 @dataclass(kw_only=True)
@@ -514,12 +513,21 @@ def _plane_patch(lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple[np.ndarra
     return vertices, faces
 
 
-def _world_box(pose: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World AABB of the box [lo, hi] (body frame) under ``pose``."""
-    centre, half = (lo + hi) / 2, (hi - lo) / 2
-    c = pose[:3, :3] @ centre + pose[:3, 3]
-    h = np.abs(pose[:3, :3]) @ half
-    return c - h, c + h
+@njit(cache=True)
+def _boxes_apart(pose_a, lo_a, hi_a, grow, pose_b, lo_b, hi_b):
+    """Whether the world boxes (axis-aligned) of the box [lo_a - grow, hi_a + grow] under ``pose_a`` (4, 4) and of
+    [lo_b, hi_b] (3,) under ``pose_b`` do not overlap: one compiled call, where numpy's would be a dozen."""
+    for axis in range(3):
+        centre_a, half_a = pose_a[axis, 3], 0.0
+        centre_b, half_b = pose_b[axis, 3], 0.0
+        for j in range(3):
+            centre_a += pose_a[axis, j] * (lo_a[j] + hi_a[j]) / 2
+            half_a += abs(pose_a[axis, j]) * ((hi_a[j] - lo_a[j]) / 2 + grow)
+            centre_b += pose_b[axis, j] * (lo_b[j] + hi_b[j]) / 2
+            half_b += abs(pose_b[axis, j]) * (hi_b[j] - lo_b[j]) / 2
+        if centre_a + half_a < centre_b - half_b or centre_b + half_b < centre_a - half_a:
+            return True
+    return False
 
 
 __all__ = ["SdfBody", "PairSettings", "Pair", "PlanePair", "SegmentPair", "SurfacePair", "NearMeshPair", "MeshPair", "RefinedMesh",

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from ..proxy_kernel import first_of_cell
-from .contacts import FLAT_COS, MAX_PER_PATCH, MERGE_CELL, PATCH_COS
+from .contacts import FLAT_COS, MAX_PER_PATCH, MERGE_CELL, PATCH_COS, tangents
 
 
 def reduce_contacts(points: np.ndarray, depths: np.ndarray, normals: np.ndarray, faces: np.ndarray, merge_tol: float,
@@ -116,7 +116,7 @@ def _manifold(points, rows, normal, n, spread):
     chosen.append(int(np.argmax(near)))
     for i in range(p):
         near[i] = min(near[i], _distance(flat, i, chosen[-1]))
-    t1, t2 = _tangents(normal)
+    t1, t2 = tangents(normal[0], normal[1], normal[2])
     while len(chosen) < min(n, p):
         gain = _area_gain(flat, chosen, t1, t2)
         for i in range(p):
@@ -135,18 +135,6 @@ def _manifold(points, rows, normal, n, spread):
 def _distance(flat, i, j):
     dx, dy, dz = flat[i, 0] - flat[j, 0], flat[i, 1] - flat[j, 1], flat[i, 2] - flat[j, 2]
     return math.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@njit(cache=True)
-def _tangents(normal):
-    """Two unit tangents of the unit ``normal`` (3,), (t1, t2, normal) right-handed: ``zoo.sim.contacts.tangent_frames``'s."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    t1 = np.array([normal[1] * helper[2] - normal[2] * helper[1], normal[2] * helper[0] - normal[0] * helper[2],
-                   normal[0] * helper[1] - normal[1] * helper[0]])
-    t1 /= math.sqrt(t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2])
-    t2 = np.array([normal[1] * t1[2] - normal[2] * t1[1], normal[2] * t1[0] - normal[0] * t1[2],
-                   normal[0] * t1[1] - normal[1] * t1[0]])
-    return t1, t2
 
 
 @njit(cache=True)
