@@ -81,8 +81,9 @@ class CoherenceStats:
     fallback: int = 0
 
     def add(self, other: CoherenceStats) -> None:
-        for key in _STATS_FIELDS:  # not asdict: this runs at every step of every pair
-            setattr(self, key, getattr(self, key) + getattr(other, key))
+        mine, theirs = self.__dict__, other.__dict__  # not asdict, nor getattr: this runs at every step of every pair
+        for key in _STATS_FIELDS:
+            mine[key] += theirs[key]
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -109,7 +110,8 @@ def moved_along_normal(value, normal, tri, then, bary):
     the normal is NaN: none known). Torch tensors or numpy arrays alike (the same kind back)."""
     if isinstance(value, np.ndarray):
         shift = np.einsum("nv,nvc->nc", bary, tri) - np.einsum("nv,nvc->nc", bary, then)
-        return value + np.nan_to_num((shift * normal).sum(axis=-1))
+        along = (shift * normal).sum(axis=-1)
+        return value + np.where(np.isnan(along), 0.0, along)  # np.nan_to_num's checks cost more than a few rows
     shift = bary_to_points(tri, bary) - bary_to_points(then, bary)
     return value + torch.nan_to_num((shift * normal).sum(dim=-1))
 

@@ -345,18 +345,18 @@ class ProxyCollider:
             self._stamp += 1
             out.counts[:] = 0
             kernel.search_faces(call._replace(stamp=self._stamp), self._mesh, self.proxy.grid(), memory, out)
-            counts = out.counts[0]
-            missed = int(counts["missing"])
+            counts = dict(zip(kernel.COUNTS.names, out.counts[0].item()))  # Python ints: a record's fields cost more
+            missed = counts["missing"]
             if not missed:
                 break
             self._make_ready(out.missing, missed)
             retry = True
-        stats.faces_near, stats.faces_skipped = int(counts["faces_near"]), int(counts["faces_skipped"])
-        stats.candidates, stats.warm, stats.cold = int(counts["candidates"]), int(counts["warm"]), int(counts["cold"])
-        stats.screened, stats.proxy_reads = int(counts["screened"]), stats.proxy_reads + int(counts["reads"])
-        searched = int(counts["searched"])
+        stats.faces_near, stats.faces_skipped = counts["faces_near"], counts["faces_skipped"]
+        stats.candidates, stats.warm, stats.cold = counts["candidates"], counts["warm"], counts["cold"]
+        stats.screened, stats.proxy_reads = counts["screened"], stats.proxy_reads + counts["reads"]
+        searched = counts["searched"]
         self._last_bary[out.searched_face[:searched]] = out.searched_bary[:searched]
-        n = int(counts["out"])
+        n = counts["out"]
         # views: a search's answers stay as it wrote them until the next search, which replaces what carried them
         return ProxyAnswers(out.face[:n], out.tri[:n], out.bary[:n], out.value[:n], out.grad[:n], out.status[:n])
 
@@ -638,9 +638,9 @@ class _FaceBounds:
         call's relative pose to ``relative`` (4, 4): |dR m + dt| + |dR|_F r for dR, dt the change of rotation and
         shift."""
         if self.relative is not None:
-            turn = relative[:3, :3] - self.relative[:3, :3]
-            self.cluster_motion += (row_norms(centres @ turn.T + (relative[:3, 3] - self.relative[:3, 3]))
-                                    + float(row_norms(turn.reshape(-1))) * radii)
+            from .proxy_kernel import add_cluster_motion
+
+            add_cluster_motion(self.cluster_motion, centres, radii, relative, self.relative)
         self.relative = relative
 
 

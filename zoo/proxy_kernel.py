@@ -403,6 +403,27 @@ def search_faces(call, mesh, grid, memory, out):
         cluster_key[c] = min(cluster_key[c], face_key[near[i]])
 
 
+@njit(cache=True)
+def add_cluster_motion(motion, centres, radii, now, then):
+    """Add to each cluster's ``motion`` (C,) how far its points can have moved relative to the SDF from the relative
+    pose ``then`` to ``now`` (4, 4, SDF-from-mesh): |dR m + dt| + |dR|_F r for its centre m (``centres`` (C, 3)) and
+    radius r (``radii`` (C,)), dR and dt the changes of rotation and shift (``zoo.proxy_collider._FaceBounds``)."""
+    turn = np.empty((3, 3))
+    frobenius = 0.0
+    for a in range(3):
+        for b in range(3):
+            turn[a, b] = now[a, b] - then[a, b]
+            frobenius += turn[a, b] * turn[a, b]
+    frobenius = math.sqrt(frobenius)
+    sx, sy, sz = now[0, 3] - then[0, 3], now[1, 3] - then[1, 3], now[2, 3] - then[2, 3]
+    for c in range(centres.shape[0]):
+        mx, my, mz = centres[c, 0], centres[c, 1], centres[c, 2]
+        dx = turn[0, 0] * mx + turn[0, 1] * my + turn[0, 2] * mz + sx
+        dy = turn[1, 0] * mx + turn[1, 1] * my + turn[1, 2] * mz + sy
+        dz = turn[2, 0] * mx + turn[2, 1] * my + turn[2, 2] * mz + sz
+        motion[c] += math.sqrt(dx * dx + dy * dy + dz * dz) + frobenius * radii[c]
+
+
 @njit(cache=True, error_model="numpy")
 def polish_ends(tri, bary, grads, samples, grid, missing, counts):
     """``ProxyCollider._polish``'s step for P faces, compiled: from ``bary`` (P, 3) on ``tri`` (P, 3, 3) (the SDF's

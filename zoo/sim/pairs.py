@@ -454,11 +454,12 @@ def _segment_answers(pairs: list, a: np.ndarray, b: np.ndarray, reach: np.ndarra
     kept for the next steps."""
     sdf = pairs[0][0].sdf_body.sdf
     kept, asked = [], []
+    ends_a, ends_b, reaches = a.tolist(), b.tolist(), reach.tolist()  # Python floats: a pair's test is a few of them
     for index, (pair, margin, _) in enumerate(pairs):
-        if pair.coherence and pair.clearance is not None and pair.clearance.holds(a[index], b[index], reach[index]):
+        if pair.coherence and pair.clearance is not None and pair.clearance.holds(ends_a[index], ends_b[index], reaches[index]):
             continue  # out of reach still: no contact, no query
         last = pair.last
-        reuse = last is not None and pair.coherence and last.moved(a[index], b[index]) <= REUSE_FRACTION * margin
+        reuse = last is not None and pair.coherence and last.moved(ends_a[index], ends_b[index]) <= REUSE_FRACTION * margin
         (kept if reuse else asked).append(index)
     carried = carried_minima([pairs[i][0].last for i in kept], a[kept], b[kept], np.asarray(kept, dtype=np.int64))
     if not asked:
@@ -472,10 +473,10 @@ def _segment_answers(pairs: list, a: np.ndarray, b: np.ndarray, reach: np.ndarra
     for j, index in enumerate(asked):
         pair = pairs[index][0]
         rows = np.flatnonzero(found.owner == index)
-        pair.last = (SegmentAnswer(a[j], b[j], found.params[rows], found.values[rows], found.grads[rows])
+        pair.last = (SegmentAnswer(ends_a[index], ends_b[index], found.params[rows], found.values[rows], found.grads[rows])
                      if pair.coherence and rows.size else None)
         out_of_reach = pair.coherence and search.floors[j] > reach[index]
-        pair.clearance = SegmentClearance(a[j], b[j], float(search.floors[j])) if out_of_reach else None
+        pair.clearance = SegmentClearance(ends_a[index], ends_b[index], float(search.floors[j])) if out_of_reach else None
     return SegmentMinima.concat([carried, found])
 
 
