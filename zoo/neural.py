@@ -575,6 +575,9 @@ class NeuralShape(SDFBase):
     def _numpy_network(self, dtype: torch.dtype) -> NumpyNetwork | None:
         """:class:`zoo.neural_numpy.NumpyNetwork` of this shape in ``dtype`` (built once, and again when the decoder's
         parameters change); None where :meth:`_value_and_grad_by_hand` does not apply."""
+        held = self._copies.get(("numpy", dtype))
+        if held is not None and held[0].current:  # built, and its decoder's parameters unchanged since: a step's path
+            return held[1]
         dec = self._decoder_no_grad(dtype, "cpu")
         _, pos, codes, direct = self._cached(dtype, "cpu")
         if direct is None or not isinstance(dec, InferenceDecoder) or dtype not in (torch.float32, torch.float64):
