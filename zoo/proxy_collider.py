@@ -256,7 +256,7 @@ class ProxyCollider:
         self.last_candidates = torch.from_numpy(self._face_id[found.faces])
         t2 = time.perf_counter()
         if self.deferred:
-            contacts = self._contacts(sdf_pose, found.faces, found.bary, found.points(), found.values, unit_rows(found.grads))
+            contacts = self._contacts(sdf_pose, found.faces, found.tri, found.bary, found.values, found.grads)
         else:
             contacts = self._exact(np.arange(len(found.faces)), stats)
         contacts.n_candidates = int(stats.candidates)
@@ -402,18 +402,21 @@ class ProxyCollider:
         r, a = request, request.asked
         if a.size:
             self._answers.store(r.faces[a], r.tri[a], r.bary[a], r.values[a], r.grads[a])
-        contact = r.values <= r.margin
-        bary, values, normals = r.bary[contact], r.values[contact], unit_rows(r.grads[contact])
-        return self._contacts(self._pending.sdf_pose, r.faces[contact], bary, np.einsum("kv,kvc->kc", bary, r.tri[contact]),
-                              values, normals)
+        contact = np.flatnonzero(r.values <= r.margin)
+        return self._contacts(self._pending.sdf_pose, r.faces[contact], r.tri[contact], r.bary[contact], r.values[contact],
+                              r.grads[contact])
 
     def _answer(self, tri, bary, status, margin, stats):
         """The SDF's answers on faces (A, 3, 3) from the proxy's minimisers ``bary`` (A, 3) (``status`` (A,) there),
         within ``margin`` (a float, or (A,) one per face): bary (A, 3), values (A,), gradients (A, 3)."""
+        from .proxy_kernel import frank_wolfe_gaps
+
         bary = bary.copy()
-        margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (len(tri),))
+        margin = np.asarray(margin, dtype=np.float64)
+        if margin.ndim == 0:
+            margin = np.full(len(tri), margin)
         f, g = self._sdf_at(np.einsum("av,avc->ac", bary, tri), stats)
-        gap = frank_wolfe_gap(tri, bary, g)
+        gap = frank_wolfe_gaps(tri, bary, g)
         out = status != IN_BAND  # the proxy holds only a bound there
         polish = np.flatnonzero((gap > POLISH_GAP_FRACTION * margin) & (f - gap <= margin) & ~out)
         if polish.size:
@@ -497,11 +500,15 @@ class ProxyCollider:
         stats.exact_points += len(points)
         return value_and_grad_numpy(self.sdf, points, self._dtype)
 
-    def _contacts(self, sdf_pose, faces, bary, points, depths, normals) -> ContactArrays:
-        """Contacts in the world frame from SDF-frame points (K, 3) and unit normals (K, 3)."""
-        rotation, shift = sdf_pose[:3, :3], sdf_pose[:3, 3]
-        return ContactArrays(points @ rotation.T + shift, depths, normals @ rotation.T, self._face_id[faces], bary,
-                             n_triangles=len(self._f), n_candidates=len(faces), method=self.reported_method)
+    def _contacts(self, sdf_pose, faces, tri, bary, depths, grads) -> ContactArrays:
+        """Contacts in the world frame at ``bary`` (K, 3) on the ``faces`` (K,) at ``tri`` (K, 3, 3) (the SDF's frame),
+        at ``depths`` (K,), their normals along the SDF-frame gradients ``grads`` (K, 3) (one compiled pass,
+        :func:`zoo.proxy_kernel.world_contacts`)."""
+        from .proxy_kernel import world_contacts
+
+        points, normals = world_contacts(tri, bary, grads, sdf_pose[:3, :3], sdf_pose[:3, 3])
+        return ContactArrays(points, depths, normals, self._face_id[faces], bary, n_triangles=len(self._f),
+                             n_candidates=len(faces), method=self.reported_method)
 
 
 def exact_contacts_together(requests) -> list[Contacts]:

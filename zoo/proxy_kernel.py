@@ -404,6 +404,38 @@ def search_faces(call, mesh, grid, memory, out):
 
 
 @njit(cache=True)
+def frank_wolfe_gaps(tri, bary, grads):
+    """``zoo.simplex.frank_wolfe_gap`` (W,) of W faces ``tri`` (W, 3, 3) at ``bary`` (W, 3) with gradients ``grads``
+    (W, 3) there, one compiled pass (a step's few faces: numpy's calls cost more than the arithmetic)."""
+    gaps = np.empty(tri.shape[0])
+    for i in range(tri.shape[0]):
+        gaps[i] = _frank_wolfe_gap(tri[i], bary[i, 0], bary[i, 1], bary[i, 2], grads[i, 0], grads[i, 1], grads[i, 2])
+    return gaps
+
+
+@njit(cache=True)
+def world_contacts(tri, bary, grads, rotation, shift):
+    """The world points (K, 3) at ``bary`` (K, 3) on the faces ``tri`` (K, 3, 3) (the SDF's frame), and the unit
+    normals (K, 3) along ``grads`` (K, 3) there (zeros where a gradient is zero), the SDF's frame turned by
+    ``rotation`` (3, 3) and moved by ``shift`` (3,)."""
+    k = tri.shape[0]
+    points, normals = np.empty((k, 3)), np.empty((k, 3))
+    for i in range(k):
+        b0, b1, b2 = bary[i, 0], bary[i, 1], bary[i, 2]
+        px = b0 * tri[i, 0, 0] + b1 * tri[i, 1, 0] + b2 * tri[i, 2, 0]
+        py = b0 * tri[i, 0, 1] + b1 * tri[i, 1, 1] + b2 * tri[i, 2, 1]
+        pz = b0 * tri[i, 0, 2] + b1 * tri[i, 1, 2] + b2 * tri[i, 2, 2]
+        gx, gy, gz = grads[i, 0], grads[i, 1], grads[i, 2]
+        length = math.sqrt(gx * gx + gy * gy + gz * gz)
+        if length > 0:
+            gx, gy, gz = gx / length, gy / length, gz / length
+        for a in range(3):
+            points[i, a] = rotation[a, 0] * px + rotation[a, 1] * py + rotation[a, 2] * pz + shift[a]
+            normals[i, a] = rotation[a, 0] * gx + rotation[a, 1] * gy + rotation[a, 2] * gz
+    return points, normals
+
+
+@njit(cache=True)
 def add_cluster_motion(motion, centres, radii, now, then):
     """Add to each cluster's ``motion`` (C,) how far its points can have moved relative to the SDF from the relative
     pose ``then`` to ``now`` (4, 4, SDF-from-mesh): |dR m + dt| + |dR|_F r for its centre m (``centres`` (C, 3)) and

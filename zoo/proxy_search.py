@@ -95,10 +95,6 @@ class ProxyAnswers:
         out.values[rows], out.grads[rows] = values, grads
         return out
 
-    def points(self) -> np.ndarray:
-        """(N, 3) the minimisers in the SDF's frame."""
-        return np.einsum("nv,nvc->nc", self.bary, self.tri)
-
 
 LINE_START_CELLS = 4  # a long face's cold search also starts every this many proxy cells along its length
 

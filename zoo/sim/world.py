@@ -489,8 +489,7 @@ class World:
         answers = exact_arrays_together([(found[i].pair.collider, found[i].usable) for i in deferred])
         for i, contacts in zip(deferred, answers):
             asked = found[i]
-            # the answers keep the asked rows' order, less those beyond the margin; a call answers a face once
-            answered = np.isin(asked.contacts.triangles[asked.usable], contacts.triangles)
+            answered = _kept_in_order(asked.contacts.triangles[asked.usable], contacts.triangles)
             mesh_normals = asked.mesh_normals[asked.usable[answered]]
             contacts.triangles = asked.pair.refined.surface_faces(contacts.triangles, contacts.bary)
             # a row the slack or a near miss let through may be separated on the SDF, and not close in time
@@ -513,6 +512,22 @@ def usable_mask(contacts: ContactArrays, mesh_normals: np.ndarray, closing: Clos
     known within ``slack`` (m)."""
     return usable_rows(contacts.points, contacts.depths, contacts.normals, mesh_normals, *closing, GRAZING_COS,
                        SEPARATED_COS, float(slack))
+
+
+def _kept_in_order(asked: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of the faces ``asked`` (N,) are among ``kept`` (K,), the SDF's answers to them, which keep
+    their order less those beyond the margin (a call answers a face once): a walk along both, where a few rows a
+    step cost ``np.isin``'s sort more than the walk."""
+    out = np.zeros(len(asked), dtype=bool)
+    kept = kept.tolist()
+    j = 0
+    for i, face in enumerate(asked.tolist()):
+        if j < len(kept) and face == kept[j]:
+            out[i] = True
+            j += 1
+    if j != len(kept):
+        raise AssertionError("the SDF's answers are not the asked faces in their order")
+    return out
 
 
 def _mesh_pair(mesh) -> tuple[np.ndarray, np.ndarray]:
