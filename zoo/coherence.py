@@ -319,7 +319,7 @@ class CoherentCollider:
         self._face_radius = (corners - self._centroid.unsqueeze(1)).norm(dim=-1).amax(dim=-1)  # (F,)
         self.stats = CoherenceStats() if self._on_proxy is None else self._on_proxy.stats
         self.last_stats = CoherenceStats()
-        self.last_candidates = torch.zeros(0, dtype=torch.int64, device=self.vertices.device)
+        self._last_candidates = torch.zeros(0, dtype=torch.int64, device=self.vertices.device)
         self.reset()
 
     def reset(self) -> None:
@@ -330,6 +330,11 @@ class CoherentCollider:
         self._cleared = ClearedFaces.empty(v, f.shape[0])
         if self._on_proxy is not None:
             self._on_proxy.reset()
+
+    @property
+    def last_candidates(self) -> torch.Tensor:
+        """(C,) int64: the faces the last call solved (on a proxy, those it kept as its proxy contacts)."""
+        return self._last_candidates if self._on_proxy is None else self._on_proxy.last_candidates
 
     @property
     def proxy_collider(self):
@@ -372,7 +377,7 @@ class CoherentCollider:
         if self._on_proxy is None:
             return ContactArrays.from_contacts(self(torch.from_numpy(sdf_pose), torch.from_numpy(mesh_pose), margin))
         contacts = self._on_proxy.collide_arrays(sdf_pose, mesh_pose, margin)
-        self.last_stats, self.last_candidates = self._on_proxy.last_stats, self._on_proxy.last_candidates
+        self.last_stats = self._on_proxy.last_stats
         return contacts
 
     def __call__(self, sdf_pose=None, mesh_pose=None, margin: float | None = None) -> Contacts:
@@ -380,7 +385,7 @@ class CoherentCollider:
         ``margin`` replaces the collider's for this call (the bounds carried over do not depend on it)."""
         if self._on_proxy is not None:
             contacts = self._on_proxy(sdf_pose, mesh_pose, margin)
-            self.last_stats, self.last_candidates = self._on_proxy.last_stats, self._on_proxy.last_candidates
+            self.last_stats = self._on_proxy.last_stats
             return contacts
         margin = self.margin if margin is None else non_negative_float(margin, "margin")
         if not self.coherence:
@@ -701,4 +706,4 @@ class CoherentCollider:
         self._answers.value[candidates[solved]] = depths[solved].to(self._answers.value)
         self._answers.at[candidates[solved]] = local[self.faces[candidates[solved]]]
         self._answers.normal[candidates[solved]] = normals[solved].to(self._answers.normal)
-        self.last_candidates = candidates
+        self._last_candidates = candidates

@@ -211,7 +211,12 @@ class ProxyCollider:
         self._buffers = None  # the compiled passes' buffers (zoo.proxy_kernel.KernelBuffers), made at their first call
         self._stamp = 0  # the compiled passes' last call (KernelBuffers.vertex_stamp)
         self._bounds = _FaceBounds.empty(len(self._clusters), n)  # how far each cluster moved, and the faces' bounds
-        self.last_candidates = torch.zeros(0, dtype=torch.int64)
+        self._last_faces = np.zeros(0, dtype=np.int64)  # the faces the last call kept (the collider's order)
+
+    @property
+    def last_candidates(self) -> torch.Tensor:
+        """(C,) int64: the faces (the mesh's numbering) the last call kept as its proxy contacts."""
+        return torch.from_numpy(self._face_id[self._last_faces])
 
     # -- a step --------------------------------------------------------------------------------------------------
 
@@ -253,7 +258,7 @@ class ProxyCollider:
         else:
             found = found.take(np.flatnonzero(found.values <= search))
         self._pending = _ProxyContacts(sdf_pose, found.faces, found.tri, found.bary, found.status, margin)
-        self.last_candidates = torch.from_numpy(self._face_id[found.faces])
+        self._last_faces = found.faces
         t2 = time.perf_counter()
         if self.deferred:
             contacts = self._contacts(sdf_pose, found.faces, found.tri, found.bary, found.values, found.grads)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -461,13 +461,14 @@ class World:
         SDF's depths)."""
         if self.reduce is not True or not found.pair.deferred:
             return found
-        near = self._reduced(replace(found, usable=found.near_misses))
-        return replace(found, usable=np.concatenate([self._reduced(found), near]), near_misses=near, reduced=True)
+        near = self._reduced(found, found.near_misses)
+        return PairContacts(found.pair, found.contacts, found.mesh_normals, np.concatenate([self._reduced(found), near]),
+                            found.closing, reduced=True, near_misses=near)
 
-    def _reduced(self, found: PairContacts) -> np.ndarray:
+    def _reduced(self, found: PairContacts, rows: np.ndarray | None = None) -> np.ndarray:
         """The usable rows (R,) the reduction keeps (all of them with ``reduce=False``): a manifold per patch, on
-        the depths ``found`` holds."""
-        keep = found.usable
+        the depths ``found`` holds; of ``rows`` (default: the usable ones)."""
+        keep = found.usable if rows is None else rows
         if not self.reduce or not len(keep):
             return keep
         c = found.contacts
