@@ -558,38 +558,44 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
     cells = np.empty((n, 3), dtype=np.int64)
     rows = np.empty(n, dtype=np.int64)
     kept_values = np.empty(n)
-    world = np.empty(3)
-    normal = np.empty(3)
+    # the closing motion in the SDF's frame, where the points and normals are: u + w x (R p + t) . R n is
+    # (R^T (u + w x t) + R^T w x p) . n, so that only the rows kept are taken to the world (their cells)
+    shift, turn = np.empty(3), np.empty(3)
+    for a in range(3):
+        b, c = (a + 1) % 3, (a + 2) % 3
+        shift[a] = closing_shift[a] + closing_turn[b] * sdf_shift[c] - closing_turn[c] * sdf_shift[b]
+    shift, turn = sdf_rotation.T @ shift, sdf_rotation.T @ closing_turn
+    facing_at_least = min(touching_cos, separated_cos)  # a row below it fails usable's facing test at any depth
+    point, normal = np.empty(3), np.empty(3)
     m = 0
     for i in range(n):
         value = values[i]
         if not value <= search:
             continue
         f = faces[i]
-        length = math.sqrt(grads[i, 0] ** 2 + grads[i, 1] ** 2 + grads[i, 2] ** 2)
+        gx, gy, gz = grads[i, 0], grads[i, 1], grads[i, 2]
+        length = math.sqrt(gx * gx + gy * gy + gz * gz)
         scale = 1.0 / length if length > 0 else 0.0
-        gx, gy, gz = grads[i, 0] * scale, grads[i, 1] * scale, grads[i, 2] * scale  # the contact's normal, SDF frame
-        # the face's normal in the SDF's frame is rotation @ n, so its cosine with g is n . (rotation^T g)
-        cos = (face_normal[f, 0] * (rotation[0, 0] * gx + rotation[1, 0] * gy + rotation[2, 0] * gz)
-               + face_normal[f, 1] * (rotation[0, 1] * gx + rotation[1, 1] * gy + rotation[2, 1] * gz)
-               + face_normal[f, 2] * (rotation[0, 2] * gx + rotation[1, 2] * gy + rotation[2, 2] * gz))
+        normal[0], normal[1], normal[2] = gx * scale, gy * scale, gz * scale  # the contact's normal, SDF frame
+        # the face's normal in the SDF's frame is rotation @ n, so its cosine with the normal is n . (rotation^T normal)
+        cos = 0.0
+        for a in range(3):
+            cos += face_normal[f, a] * (rotation[0, a] * normal[0] + rotation[1, a] * normal[1] + rotation[2, a] * normal[2])
         degenerate = face_normal[f, 0] == 0 and face_normal[f, 1] == 0 and face_normal[f, 2] == 0
-        b0, b1, b2 = bary[i, 0], bary[i, 1], bary[i, 2]
-        px = b0 * tri[i, 0, 0] + b1 * tri[i, 1, 0] + b2 * tri[i, 2, 0]  # the point, SDF frame
-        py = b0 * tri[i, 0, 1] + b1 * tri[i, 1, 1] + b2 * tri[i, 2, 1]
-        pz = b0 * tri[i, 0, 2] + b1 * tri[i, 1, 2] + b2 * tri[i, 2, 2]
-        for a in range(3):  # the point and the normal in the world
-            world[a] = sdf_rotation[a, 0] * px + sdf_rotation[a, 1] * py + sdf_rotation[a, 2] * pz + sdf_shift[a]
-            normal[a] = sdf_rotation[a, 0] * gx + sdf_rotation[a, 1] * gy + sdf_rotation[a, 2] * gz
-        speed = closing_speed(closing_shift, closing_turn, world, normal) if value > slack else 0.0
+        if not degenerate and abs(cos) < facing_at_least:
+            continue
+        for a in range(3):  # the point, SDF frame
+            point[a] = bary[i, 0] * tri[i, 0, a] + bary[i, 1] * tri[i, 1, a] + bary[i, 2] * tri[i, 2, a]
+        speed = closing_speed(shift, turn, point, normal) if value > slack else 0.0
         near = 0  # a near miss: its cell is its own (its x index made odd), apart from the usable contacts'
         if not usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos, slack):
             if not (near_miss > 0 and usable(value, cos, degenerate, speed, closing_seconds, touching_cos, separated_cos,
                                              slack + near_miss)):
                 continue
             near = 1
-        for a in range(3):
-            cells[m, a] = int(math.floor(world[a] / cell))
+        for a in range(3):  # the cell of the point in the world
+            world = sdf_rotation[a, 0] * point[0] + sdf_rotation[a, 1] * point[1] + sdf_rotation[a, 2] * point[2] + sdf_shift[a]
+            cells[m, a] = int(math.floor(world / cell))
         cells[m, 0] = 2 * cells[m, 0] + near
         rows[m] = i
         kept_values[m] = value
