@@ -26,8 +26,7 @@ from .contact_filters import closing_speed, usable
 try:
     from numba import njit
 except ImportError as error:  # pragma: no cover - numba is a dependency of sdfzoo
-    raise ImportError("the compiled proxy collider needs numba: pip install numba "
-                      "(or ProxyCollider(kernel='numpy'), the slower numpy passes)") from error
+    raise ImportError("the proxy collider needs numba: pip install numba") from error
 
 IN_BAND, ABOVE, UNKNOWN = 0, 1, -1  # zoo.proxy's read status
 MISSING = 2  # a read's status where its brick is not ready (a lazy proxy): the caller bakes it and calls again
