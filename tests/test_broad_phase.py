@@ -13,7 +13,6 @@ mujoco = pytest.importorskip("mujoco")
 
 import zoo  # noqa: E402
 import zoo.sim  # noqa: E402
-from zoo.geometry import cross  # noqa: E402
 from zoo.sim.broad_phase import SPECULATIVE_FACTOR, body_velocities  # noqa: E402
 from zoo.sim.geoms import body_pose, body_velocity  # noqa: E402
 
@@ -44,7 +43,7 @@ def reference_near(world, model, data):
             margin = SPECULATIVE_FACTOR * closing
         if pair.apart(body_pose(data, pair.sdf_body.body), pair.surface_pose(data), margin):
             continue
-        shift = a[:3] - b[:3] - cross(a[3:], xa) + cross(b[3:], xb)
+        shift = a[:3] - b[:3] - np.cross(a[3:], xa) + np.cross(b[3:], xb)
         out[index] = (margin, speculative, shift, a[3:] - b[3:], pair.surface_pose(data))
     return out
 

@@ -1,4 +1,4 @@
-"""zoo.geometry.cross and zoo.sdf.value_and_grad_numpy against the functions they stand in for."""
+"""zoo.sdf.value_and_grad_numpy against the function it stands in for."""
 
 from __future__ import annotations
 
@@ -6,17 +6,7 @@ import numpy as np
 import torch
 
 import zoo
-from zoo.geometry import cross
 from zoo.sdf import value_and_grad_numpy
-
-
-def test_cross_is_numpys_to_the_bit():
-    rng = np.random.default_rng(0)
-    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
-    assert np.array_equal(cross(a, b), np.cross(a, b))
-    assert np.array_equal(cross(a[0], b[0]), np.cross(a[0], b[0]))  # two vectors
-    assert np.array_equal(cross(a[0], b), np.cross(a[0], b))  # one against many
-    assert cross(a[:0], b[:0]).shape == (0, 3)
 
 
 def test_value_and_grad_numpy_is_the_sdfs_own():

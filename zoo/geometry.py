@@ -119,14 +119,6 @@ def invert_pose(pose):
     return inv
 
 
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b (..., 3) over the last axis of numpy arrays (..., 3), broadcast: ``np.cross``'s values, the same operations
-    in the same order, without its axis handling, which costs more than the arithmetic on a few vectors."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
 def row_norms(v: np.ndarray) -> np.ndarray:
     """(..., n) -> (...): each row's Euclidean length (numpy; ``np.linalg.norm``'s checks cost more than a few rows'
     arithmetic)."""

@@ -61,19 +61,19 @@ class SegmentAnswer:
     its ends ``a``, ``b`` (3 floats each) then (the SDF's frame) and its points of least f then (``params`` (k,) along a -> b,
     ``values`` (k,), ``grads`` (k, 3)); k = 0 is never kept (a segment the search dropped is searched again)."""
 
-    a: np.ndarray
-    b: np.ndarray
+    a: list[float]
+    b: list[float]
     params: np.ndarray
     values: np.ndarray
     grads: np.ndarray
 
-    def moved(self, a: np.ndarray, b: np.ndarray) -> float:
+    def moved(self, a: list[float], b: list[float]) -> float:
         """How far (m) any point of the segment moved since, now that its ends are ``a``, ``b`` (3 floats each)
         (:func:`segment_moved`)."""
         return segment_moved(self.a, self.b, a, b)
 
 
-def segment_moved(a0: np.ndarray, b0: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+def segment_moved(a0, b0, a, b) -> float:
     """How far (m) any point of a segment moved when its ends went from ``a0``, ``b0`` to ``a``, ``b`` (3 floats each:
     lists, where a numpy row would cost math.dist more than its arithmetic): a point at t moves by (1 - t) da + t db,
     at most the larger of the two."""
@@ -85,11 +85,11 @@ class SegmentClearance:
     """A segment the search found out of reach: its ends ``a``, ``b`` (3 floats each) then (the SDF's frame) and ``floor``, a
     lower bound of f along it then (:attr:`SegmentSearch.floors`)."""
 
-    a: np.ndarray
-    b: np.ndarray
+    a: list[float]
+    b: list[float]
     floor: float
 
-    def holds(self, a: np.ndarray, b: np.ndarray, reach: float) -> bool:
+    def holds(self, a: list[float], b: list[float], reach: float) -> bool:
         """Whether f still stays above ``reach`` along the segment now that its ends are ``a``, ``b`` (3 floats each): each of its
         points moved at most :func:`segment_moved`, and f at most ``SEGMENT_LIPSCHITZ`` times that."""
         return self.floor - SEGMENT_LIPSCHITZ * segment_moved(self.a, self.b, a, b) > reach
