@@ -559,11 +559,14 @@ def thinned_rows(values, bary, tri, grads, faces, search, face_normal, rotation,
     kept_values = np.empty(n)
     # the closing motion in the SDF's frame, where the points and normals are: u + w x (R p + t) . R n is
     # (R^T (u + w x t) + R^T w x p) . n, so that only the rows kept are taken to the world (their cells)
-    shift, turn = np.empty(3), np.empty(3)
+    moving, shift, turn = np.empty(3), np.empty(3), np.empty(3)
     for a in range(3):
         b, c = (a + 1) % 3, (a + 2) % 3
-        shift[a] = closing_shift[a] + closing_turn[b] * sdf_shift[c] - closing_turn[c] * sdf_shift[b]
-    shift, turn = sdf_rotation.T @ shift, sdf_rotation.T @ closing_turn
+        moving[a] = closing_shift[a] + closing_turn[b] * sdf_shift[c] - closing_turn[c] * sdf_shift[b]
+    for a in range(3):  # R^T: numba's @ would warn on the pose's strided rotation
+        shift[a] = sdf_rotation[0, a] * moving[0] + sdf_rotation[1, a] * moving[1] + sdf_rotation[2, a] * moving[2]
+        turn[a] = (sdf_rotation[0, a] * closing_turn[0] + sdf_rotation[1, a] * closing_turn[1]
+                   + sdf_rotation[2, a] * closing_turn[2])
     facing_at_least = min(touching_cos, separated_cos)  # a row below it fails usable's facing test at any depth
     point, normal = np.empty(3), np.empty(3)
     m = 0
