@@ -14,14 +14,15 @@ against); neither loops over faces in Python:
    three values (:func:`zoo.bounds.triangle_reach`): a face it puts above the search margin holds no contact.
 3. **Search.** A face whose lowest vertex is a KKT point on the proxy (its Frank-Wolfe gap below ``CONVERGED_GAP``
    of the margin) has that vertex as its answer; one the screen (:func:`zoo.coherence.screen_bound`'s bound) puts
-   above the search margin is dropped. The others start from their last answer (a warm start) or, new, from the
-   lowest of ``PATTERN``'s inner points and, on a face at least ``LINE_START_CELLS`` proxy cells long, of points
-   along its length (:func:`zoo.proxy_search.line_starts`: a long sliver's minima lie between the pattern's
-   points), and take up to ``SEARCH_STEPS`` projected-gradient
+   above the search margin is dropped. The others start from their last answer (a warm start; not read again where
+   it is a corner: its read is that vertex's) or, new, from the lowest of ``PATTERN``'s inner points and, on a face
+   at least ``LINE_START_CELLS`` proxy cells long, of points along its length (:func:`zoo.proxy_search.line_starts`:
+   a long sliver's minima lie between the pattern's points), and take up to ``SEARCH_STEPS`` projected-gradient
    steps (``WARM_SEARCH_STEPS`` for a warm one), each a line search to where the steepest descent inside the
-   triangle leaves it (two reads), leaving the search as the gap or the screen settles them. A point out of the
-   proxy's band takes no step: there the read is a bound, f(c) - L |p - c| from its brick's centre c, and its
-   gradient the one at c, so a step along it does not follow the values read (docs/proxy.md).
+   triangle leaves it (two reads; one where the parabola's minimiser is the segment's end), leaving the search as
+   the gap or the screen settles them. A point out of the proxy's band takes no step: there the read is a bound,
+   f(c) - L |p - c| from its brick's centre c, and its gradient the one at c, so a step along it does not follow
+   the values read (docs/proxy.md).
 4. **Contacts.** The faces whose proxy minimum is within the margin plus the proxy's ``error_bound`` are the
    proxy's contacts. The SDF itself then answers them (or, ``deferred``, the rows the caller keeps: a simulation
    reduces them to a manifold first): its value and gradient at the proxy's minimiser; where the SDF's Frank-Wolfe

@@ -215,7 +215,9 @@ def _descend(t, b, f0, gx, gy, gz, grid, missing, counts, direction, answer):
         step = min(max(-slope / (2 * curvature), 0.0), 1.0)
     if not math.isfinite(step):
         step = 0.0
-    if found:
+    if found and step == 1.0:  # the parabola's minimiser is the segment's end, read already
+        answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], answer[6], answer[7] = n0, n1, n2, f1, g1x, g1y, g1z, s1
+    elif found:
         m0, m1, m2 = _on_simplex(b[0] + step * reach * direction[0], b[1] + step * reach * direction[1],
                                  b[2] + step * reach * direction[2])
         fm, gmx, gmy, gmz, sm = read(m0 * t[0, 0] + m1 * t[1, 0] + m2 * t[2, 0], m0 * t[0, 1] + m1 * t[1, 1] + m2 * t[2, 1],
@@ -328,6 +330,9 @@ def search_faces(call, mesh, grid, memory, out):
             if warm:
                 counts.warm += 1
                 first, last = 0, 1
+                at_corner = (last_bary[face, 0] == 0) + (last_bary[face, 1] == 0) + (last_bary[face, 2] == 0) >= 2
+                if at_corner:  # its read would be that corner's, at least the lowest vertex's: nothing to read
+                    first = 1
             else:
                 counts.cold += 1
                 first, last = 0, pattern.shape[0]

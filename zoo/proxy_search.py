@@ -216,7 +216,9 @@ def _search_inside(call: SearchCall, proxy, memory: FaceMemory, faces, tri, rows
     last = memory.last_bary[faces]  # (W, 3), NaN where none
     warm = np.isfinite(last[:, 0])
     stats.warm, stats.cold = int(warm.sum()), int(w - warm.sum())
-    for chosen, starts in ((np.flatnonzero(warm), last[warm][:, None]),  # a warm face: its last answer
+    # a warm face: its last answer, unless a corner (its read is that vertex's, at least the lowest's: nothing to read)
+    warm_inside = np.flatnonzero(warm & ((last == 0).sum(axis=1) < 2))
+    for chosen, starts in ((warm_inside, last[warm_inside][:, None]),
                            (np.flatnonzero(~warm), call.pattern[None])):  # a cold one: the pattern inside it
         if chosen.size:
             _lowest_start(proxy, tri[chosen], rows[chosen], np.broadcast_to(starts, (chosen.size,) + starts.shape[1:]),
@@ -276,7 +278,9 @@ def _descend(proxy, tri, bary, f0, g, stats):
         t = np.where(curvature > 0, np.clip(-slope / (2 * curvature), 0, 1), 1.0)
     t = np.where(np.isfinite(t), t, 0.0)
     mid = on_simplex(bary + (t * reach)[:, None] * direction)
-    fm, gm, sm = counted_read(proxy, np.einsum("wv,wvc->wc", mid, tri), stats)
+    fm, gm, sm = f1.copy(), g1.copy(), s1.copy()  # where t is 1 the minimiser is the end, read already
+    inner = np.flatnonzero(t != 1.0)
+    fm[inner], gm[inner], sm[inner] = counted_read(proxy, np.einsum("wv,wvc->wc", mid[inner], tri[inner]), stats)
     end_lower = f1 < fm
     pick = end_lower[:, None]
     return (np.where(pick, end, mid), np.where(end_lower, f1, fm), np.where(pick, g1, gm), np.where(end_lower, s1, sm))
