@@ -145,6 +145,47 @@ def test_compiled_passes_answer_as_the_numpy_passes():
     assert compared > 50 and colliders["numba"].stats.warm > 0 and colliders["numba"].proxy.lazy_bricks > 0
 
 
+
+def test_a_descent_reads_no_parabola_minimiser_that_is_its_end():
+    """The numpy search's line search (``zoo.proxy_search._descend``) reads the parabola's minimiser only where it is
+    not the segment's end, and answers as a naive one that reads both points on every face: the same barycentrics,
+    values, gradients and status, bit for bit, with one read fewer per face whose minimiser is its end."""
+    from zoo.collider import CoherenceStats
+    from zoo.proxy_search import _descend
+    from zoo.simplex import descent_segment, on_simplex
+
+    sphere = zoo.Sphere(0.05)
+    proxy = bake_proxy(sphere, margin=1e-3, spacing=1e-3, lazy=True)
+    rng = np.random.default_rng(3)
+    n = 400
+    axis = rng.normal(size=(n, 3))
+    centre = axis / np.linalg.norm(axis, axis=1, keepdims=True) * (0.05 + rng.uniform(-5e-4, 5e-4, size=(n, 1)))
+    size = np.where(np.arange(n) % 2, 3e-3, 1.5e-2)[:, None, None]  # faces of 1-6 mm and of 5-30 mm, tilted every way
+    tri = centre[:, None, :] + size * rng.uniform(-1, 1, size=(n, 3, 3))
+    bary = rng.dirichlet(np.ones(3), size=n)
+    f0, g0, _ = proxy.read_numpy(np.einsum("nv,nvc->nc", bary, tri))
+    stats = CoherenceStats()
+    got = _descend(proxy, tri, bary, f0, g0, stats)
+
+    direction, reach = descent_segment(tri, bary, g0)
+    end = on_simplex(bary + reach[:, None] * direction)
+    f1, g1, s1 = proxy.read_numpy(np.einsum("nv,nvc->nc", end, tri))
+    slope = ((np.einsum("nv,nvc->nc", end, tri) - np.einsum("nv,nvc->nc", bary, tri)) * g0).sum(axis=1)
+    curvature = f1 - f0 - slope
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(curvature > 0, np.clip(-slope / (2 * curvature), 0, 1), 1.0)
+    t = np.where(np.isfinite(t), t, 0.0)
+    mid = on_simplex(bary + (t * reach)[:, None] * direction)
+    fm, gm, sm = proxy.read_numpy(np.einsum("nv,nvc->nc", mid, tri))
+    end_lower = f1 < fm
+    naive = (np.where(end_lower[:, None], end, mid), np.where(end_lower, f1, fm), np.where(end_lower[:, None], g1, gm),
+             np.where(end_lower, s1, sm))
+    for a, b in zip(got, naive):
+        assert np.array_equal(a, b)
+    at_end = int(np.count_nonzero(t == 1.0))
+    assert 0 < at_end < n
+    assert stats.proxy_reads == 2 * n - at_end
+
 class WavyFloor(SDFBase):
     """Height above a floor that waves along x (period 30 mm, 0.1 mm high) and dips 0.4 mm once (about x = 73.1 mm),
     scaled to stay 1-Lipschitz: along a face long in x, local minima and one deepest, as a gear's flank meets a
