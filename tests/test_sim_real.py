@@ -36,6 +36,42 @@ def test_mug_released_above_the_real_rack_stays_on_the_peg(monkeypatch):
     assert np.linalg.norm(sim.pose("sdf")[:3, 3] - hanging[:3, 3]) < 0.05
 
 
+FRESH_STEPS = """
+import json, sys
+import zoo.sim
+from numba.core.registry import CPUDispatcher
+
+def versions():
+    return {f"{name}.{attr}": len(obj.overloads) for name, module in list(sys.modules.items())
+            if name.split(".")[0] == "zoo" for attr, obj in vars(module).items() if isinstance(obj, CPUDispatcher)}
+
+sim = zoo.sim.load_scene(sys.argv[1], drop=0.01)
+sim.build()
+before = versions()
+sim.run(0.1)
+grown = {name: n for name, n in versions().items() if n > before.get(name, 0)}
+print(json.dumps({"grown": grown, "touching_steps": sum(r.contacts > 0 for r in sim.log), "kernels": len(before)}))
+"""
+
+
+@pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
+def test_a_step_compiles_or_loads_no_kernel():
+    """Every compiled kernel a step calls is compiled, or loaded from numba's cache, at attach: in a fresh process,
+    the mug released 1 cm above the real rack's peg, through its first contacts, adds no version to any of zoo's
+    kernels. A kernel loaded inside a step costs that step milliseconds (a first run's largest steps)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "ZOO_DATA": str(zoo_data()), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", FRESH_STEPS, str(ROOT / "scenes" / "mug-rack.toml")], env=env,
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["touching_steps"] > 10 and report["kernels"] > 20, report
+    assert report["grown"] == {}, report
+
 @pytest.mark.slow  # 100 steps three ways; the from-scratch ways take 0.5-1 s a step: about 3 min on 2 cores
 @pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
 def test_coherent_simulation_follows_the_from_scratch_ones(monkeypatch):

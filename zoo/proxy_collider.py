@@ -192,14 +192,21 @@ class ProxyCollider:
 
     def _compile_kernels(self) -> None:
         """The compiled passes compiled (or loaded from numba's cache) now, not in the first step that meets them: the
-        search, the thinning, the polish and a NeuralSDF's few-point network, on no face."""
+        clusters' motion, the search, the thinning, the polish, the Frank-Wolfe gaps, the world contacts and a
+        NeuralSDF's few-point network, on no face."""
+        from .proxy_kernel import add_cluster_motion, frank_wolfe_gaps
+
         identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
+        add_cluster_motion(np.zeros(0), np.zeros((0, 3)), np.zeros(0), identity, identity)
         found = self._compiled_search(self._search_call(identity[:3, :3], identity[:3, 3], self.margin, self.margin,
                                                         n_clusters=0), CoherenceStats())
         thin, self.thin = self.thin, Thinning(cell=self.margin, touching_cos=0.0, separated_cos=0.0)
         self._thinned(identity, identity[:3, :3], self.margin, found)
         self.thin = thin
         self._compiled_polish(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), CoherenceStats())
+        frank_wolfe_gaps(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+        self._contacts(identity, np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0),
+                       np.zeros((0, 3)))
         value_and_grad_numpy(self.sdf, np.zeros((1, 3)), self._dtype)
 
     def reset(self) -> None:

@@ -58,7 +58,7 @@ from .geoms import (
     native_colliders,
     partner_geoms,
 )
-from .pairs import Pair, PairSettings, SdfBody, SegmentPair, make_pair, segment_contacts
+from .pairs import Pair, PairSettings, SdfBody, SegmentPair, SurfacePair, make_pair, segment_contacts
 from .reduction import reduce_contacts
 from .surface import CONTACT_RESOLUTION, surface_mesh
 
@@ -216,12 +216,17 @@ class World:
 
     def _compile_kernels(self) -> None:
         """A step's compiled kernels compiled (or loaded from numba's cache) now, at attach, not in the steps that first
-        meet them: each NeuralSDF's few-point network, the contact filter and the reduction, on one placeholder row."""
+        meet them: each NeuralSDF's few-point network, the mesh pairs' box test, the contact filter, the reduction
+        and MuJoCo's rows, on one placeholder row (each pair's collider loads its own at its creation)."""
         for sdf_body in self.bodies.values():
             value_and_grad_numpy(sdf_body.sdf, np.zeros((1, 3)), query_dtype(sdf_body.sdf))
+        for pair in self.pairs:
+            if isinstance(pair, SurfacePair):
+                pair.boxes_apart(np.eye(4), np.eye(4), 0.0)
         row, up = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
         usable_rows(row, np.zeros(1), up, up, np.zeros(3), np.zeros(3), -1.0, GRAZING_COS, SEPARATED_COS, 0.0)
         reduce_contacts(row, np.zeros(1), up, up, merge_tol=1e-3)
+        contact_rows(ContactArrays(row, np.zeros(1), up, np.zeros(1, dtype=np.int64), row), np.zeros(1, dtype=np.int64), (0, 0))
 
     def _geom_id(self, name: str) -> int:
         import mujoco
