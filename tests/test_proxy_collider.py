@@ -186,6 +186,29 @@ def test_a_descent_reads_no_parabola_minimiser_that_is_its_end():
     assert 0 < at_end < n
     assert stats.proxy_reads == 2 * n - at_end
 
+
+def test_compiled_descent_points_are_the_numpy_ones_to_the_bit():
+    """``zoo.proxy_kernel.along_descent`` (the SDF's own descent out of the band) against the numpy operations it
+    replaces (``_along_descent``): the same points, bit for bit, on faces with area, needles, points at corners and
+    on edges, and shortened steps, so that a simulation's trajectory does not depend on which ran."""
+    from zoo.proxy_collider import _along_descent
+    from zoo.proxy_kernel import along_descent
+
+    rng = np.random.default_rng(0)
+    n = 5000
+    tri = rng.normal(size=(n, 3, 3)) * 0.01
+    tri[:500, 2] = tri[:500, 0] + 1e-9 * rng.normal(size=(500, 3))  # needles
+    bary = rng.dirichlet(np.ones(3), size=n)
+    bary[1000:2000] = np.eye(3)[rng.integers(0, 3, size=1000)]  # at a corner
+    bary[2000 + np.arange(1000), rng.integers(0, 3, size=1000)] = 0.0  # on an edge
+    bary /= bary.sum(axis=1, keepdims=True)
+    grads = rng.normal(size=(n, 3))
+    fractions = np.arange(1, 9) / 8
+    length = rng.choice([1.0, 1 / 8, 1 / 64], size=n)
+    compiled, numpy = along_descent(tri, bary, grads, fractions, length), _along_descent(tri, bary, grads, fractions, length)
+    assert np.array_equal(compiled.view(np.int64), numpy.view(np.int64))
+    assert np.ptp(compiled[:, :, 0]) > 0.5  # the points move: not all stuck
+
 class WavyFloor(SDFBase):
     """Height above a floor that waves along x (period 30 mm, 0.1 mm high) and dips 0.4 mm once (about x = 73.1 mm),
     scaled to stay 1-Lipschitz: along a face long in x, local minima and one deepest, as a gear's flank meets a

@@ -192,9 +192,9 @@ class ProxyCollider:
 
     def _compile_kernels(self) -> None:
         """The compiled passes compiled (or loaded from numba's cache) now, not in the first step that meets them: the
-        clusters' motion, the search, the thinning, the polish, the Frank-Wolfe gaps, the world contacts and a
-        NeuralSDF's few-point network, on no face."""
-        from .proxy_kernel import add_cluster_motion, frank_wolfe_gaps
+        clusters' motion, the search, the thinning, the polish, the Frank-Wolfe gaps, the SDF's own descent, the world
+        contacts and a NeuralSDF's few-point network, on no face."""
+        from .proxy_kernel import add_cluster_motion, along_descent, frank_wolfe_gaps
 
         identity = np.eye(4)  # as a call's pose is passed (views of a 4x4): one compiled version
         add_cluster_motion(np.zeros(0), np.zeros((0, 3)), np.zeros(0), identity, identity)
@@ -205,6 +205,7 @@ class ProxyCollider:
         self.thin = thin
         self._compiled_polish(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), CoherenceStats())
         frank_wolfe_gaps(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+        along_descent(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.ones(POLISH_SAMPLES), np.ones(0))
         self._contacts(identity, np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0),
                        np.zeros((0, 3)))
         value_and_grad_numpy(self.sdf, np.zeros((1, 3)), self._dtype)
@@ -449,6 +450,8 @@ class ProxyCollider:
         lowest of ``POLISH_SAMPLES`` points along it (one query for all the faces; a step that finds none lower than
         where it stands tries again ``POLISH_SAMPLES`` times shorter), until the Frank-Wolfe gap is within
         ``DEEP_GAP_FRACTION`` of the ``margin`` (D,): -> bary (D, 3), values (D,), gradients (D, 3)."""
+        from .proxy_kernel import along_descent
+
         stats.fallback += len(tri)
         bary, f, g = self._lowest_corner(tri, bary.copy(), f.copy(), g.copy(), stats)
         length = np.ones(len(tri))  # of the descent segment, as a fraction of the way to the face's boundary
@@ -457,7 +460,7 @@ class ProxyCollider:
             going = np.flatnonzero(frank_wolfe_gap(tri, bary, g) > DEEP_GAP_FRACTION * margin)
             if not going.size:
                 break
-            along = _along_descent(tri[going], bary[going], g[going], t, length[going])  # (G, S, 3)
+            along = along_descent(tri[going], bary[going], g[going], t, length[going])  # (G, S, 3)
             values, grads = self._sdf_at(np.einsum("gsv,gvc->gsc", along, tri[going]).reshape(-1, 3), stats)
             values, grads = values.reshape(len(going), -1), grads.reshape(len(going), -1, 3)
             best = values.argmin(axis=1)
@@ -725,7 +728,8 @@ def _morton(q: np.ndarray) -> np.ndarray:
 def _along_descent(tri, bary, g, t, length) -> np.ndarray:
     """Barycentric points (P, S, 3) at the fractions ``t`` (S,) of ``length`` (P,) or a float, each face's share of
     its way to the boundary, along the steepest descent inside each face (P, 3, 3) from ``bary`` (P, 3) with the
-    gradients ``g`` (P, 3) there (:func:`zoo.simplex.descent_segment`)."""
+    gradients ``g`` (P, 3) there (:func:`zoo.simplex.descent_segment`): the numpy passes' polish (``kernel="numpy"``)
+    and the reference of the compiled :func:`zoo.proxy_kernel.along_descent`."""
     direction, reach = descent_segment(tri, bary, g)
     return on_simplex(bary[:, None] + (t[None, :, None] * (length * reach)[:, None, None]) * direction[:, None])
 
