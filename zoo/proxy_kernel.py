@@ -417,6 +417,15 @@ def frank_wolfe_gaps(tri, bary, grads):
     return gaps
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _load_face(tri, bary, i, t, b):
+    """Face ``i`` of ``tri`` (P, 3, 3) into ``t`` (3, 3), and its barycentrics of ``bary`` (P, 3) into ``b`` (3,)."""
+    for k in range(3):
+        b[k] = bary[i, k]
+        for a in range(3):
+            t[k, a] = tri[i, k, a]
+
+
 @njit(cache=True)
 def along_descent(tri, bary, grads, fractions, length):
     """Barycentric points (P, S, 3) along the steepest descent inside each face (P, 3, 3) from ``bary`` (P, 3), the
@@ -429,10 +438,7 @@ def along_descent(tri, bary, grads, fractions, length):
     b = np.empty(3)
     direction = np.empty(3)
     for i in range(n):
-        for k in range(3):
-            b[k] = bary[i, k]
-            for a in range(3):
-                t[k, a] = tri[i, k, a]
+        _load_face(tri, bary, i, t, b)
         scale = length[i] * _descent_segment(t, b, grads[i, 0], grads[i, 1], grads[i, 2], direction)
         for k in range(samples):
             step = fractions[k] * scale
@@ -497,10 +503,7 @@ def polish_ends(tri, bary, grads, samples, grid, missing, counts):
     b = np.empty(3)
     direction = np.empty(3)
     for i in range(n):
-        for k in range(3):
-            b[k] = bary[i, k]
-            for a in range(3):
-                t[k, a] = tri[i, k, a]
+        _load_face(tri, bary, i, t, b)
         reach = _descent_segment(t, b, grads[i, 0], grads[i, 1], grads[i, 2], direction)
         best = math.inf
         ends[i, 0], ends[i, 1], ends[i, 2] = b[0], b[1], b[2]
