@@ -145,7 +145,6 @@ def test_compiled_passes_answer_as_the_numpy_passes():
     assert compared > 50 and colliders["numba"].stats.warm > 0 and colliders["numba"].proxy.lazy_bricks > 0
 
 
-
 def test_a_descent_reads_no_parabola_minimiser_that_is_its_end():
     """The numpy search's line search (``zoo.proxy_search._descend``) reads the parabola's minimiser only where it is
     not the segment's end, and answers as a naive one that reads both points on every face: the same barycentrics,
@@ -208,6 +207,7 @@ def test_compiled_descent_points_are_the_numpy_ones_to_the_bit():
     compiled, numpy = along_descent(tri, bary, grads, fractions, length), _along_descent(tri, bary, grads, fractions, length)
     assert np.array_equal(compiled.view(np.int64), numpy.view(np.int64))
     assert np.ptp(compiled[:, :, 0]) > 0.5  # the points move: not all stuck
+
 
 class WavyFloor(SDFBase):
     """Height above a floor that waves along x (period 30 mm, 0.1 mm high) and dips 0.4 mm once (about x = 73.1 mm),

@@ -72,6 +72,7 @@ def test_a_step_compiles_or_loads_no_kernel():
     assert report["touching_steps"] > 10 and report["kernels"] > 20, report
     assert report["grown"] == {}, report
 
+
 @pytest.mark.slow  # 100 steps three ways; the from-scratch ways take 0.5-1 s a step: about 3 min on 2 cores
 @pytest.mark.skipif(zoo_data() is None, reason=SKIP_REASON)
 def test_coherent_simulation_follows_the_from_scratch_ones(monkeypatch):
